@@ -1,0 +1,92 @@
+"""Shared plumbing of the command layer: output options, emitting results, exit codes.
+
+Every command module defines ``register(subparsers)`` which adds its parser and
+sets ``handler`` (a function ``handler(args) -> int``).  Handlers parse nothing
+themselves beyond ``args``, call the library, and hand a result to
+:func:`emit`.  Nothing here does science.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from typing import Any
+
+from forensics.progress import Progress, choose_progress
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+EXIT_BAD_INPUT = 3
+
+
+def add_output_options(parser: argparse.ArgumentParser, report: bool = True) -> None:
+    """Add ``--json``, ``--report DIR``, ``--quiet`` and ``--force`` to ``parser``."""
+    group = parser.add_argument_group("output")
+    group.add_argument("--json", action="store_true", help="print one JSON object on stdout instead of the summary")
+    if report:
+        group.add_argument("--report", metavar="DIR", help="write an HTML report with PNG plots into DIR")
+    group.add_argument("--quiet", action="store_true", help="no progress bar")
+    group.add_argument("--force", action="store_true", help="replace existing outputs")
+
+
+def command_parser(subparsers: Any, name: str, help: str, example: str, description: str | None = None) -> argparse.ArgumentParser:
+    """Create a subcommand parser whose ``--help`` ends with an example."""
+    return subparsers.add_parser(
+        name,
+        help=help,
+        description=description or help,
+        epilog=f"example:\n  {example}",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
+def progress_for(args: argparse.Namespace) -> Progress:
+    """The progress wrapper the user asked for (silent with --quiet, --json or no terminal)."""
+    return choose_progress(quiet=getattr(args, "quiet", False) or getattr(args, "json", False))
+
+
+def emit(args: argparse.Namespace, summary: str | Callable[[], str], payload: dict[str, Any] | Callable[[], dict[str, Any]]) -> None:
+    """Print ``payload`` as one JSON object with --json, else the human ``summary``."""
+    if getattr(args, "json", False):
+        obj = payload() if callable(payload) else payload
+        json.dump(to_jsonable(obj), sys.stdout, indent=2, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        text = summary() if callable(summary) else summary
+        sys.stdout.write(text.rstrip("\n") + "\n")
+
+
+def info(args: argparse.Namespace, message: str) -> None:
+    """A note for the user on stderr (suppressed by --quiet)."""
+    if not getattr(args, "quiet", False):
+        print(message, file=sys.stderr)
+
+
+def warn(message: str) -> None:
+    """A warning on stderr, always shown."""
+    print(f"warning: {message}", file=sys.stderr)
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Convert numpy scalars/arrays, paths, dataclasses with ``to_dict`` and NaN into JSON-safe values."""
+    import math
+    from pathlib import Path
+
+    import numpy as np
+
+    if hasattr(obj, "to_dict") and not isinstance(obj, type):
+        return to_jsonable(obj.to_dict())
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
