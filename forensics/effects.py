@@ -1,0 +1,307 @@
+"""Built-in effects of the sensor model (see :mod:`forensics.model`).
+
+Base model of the reference paper (eq. 5 with Poisson arrivals): ``growth``
+(defect arrivals), ``offset`` (partially stuck, y = i + d) and ``stuck``
+(y = c); saturation and quantisation are done by the model.  ``read_noise`` is
+the constant temporal noise that any measurement shows.  The others are the
+candidate effects a real sensor may add.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .model import (
+    PARTIAL,
+    STUCK,
+    DefectCatalogue,
+    Device,
+    Effect,
+    FrameContext,
+    Stage,
+    param,
+    per_pixel,
+    pixel_view,
+    register_effect,
+)
+
+
+# --------------------------------------------------------------------------- arrival helpers
+def uniform_sites(n: int, shape: tuple[int, int], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` independent uniformly distributed pixel sites ``(x, y)``."""
+    return rng.integers(0, shape[1], n), rng.integers(0, shape[0], n)
+
+
+def constant_rate_onsets(rate_per_mp_year: float, device: Device, rng: np.random.Generator, counting: str) -> np.ndarray:
+    """Onset times of a constant-rate arrival process between ``t0`` and the device's last sample time.
+
+    ``counting='poisson'``: the count in any interval is Poisson(rate·MP·Δt)
+    and onsets are uniform (a homogeneous Poisson process).
+    ``counting='deterministic'``: the paper's n(T) = (T − T0)·λ, rounded at each
+    sample time, with onsets uniform within each sample interval.
+    """
+    t0 = device.model.t0
+    grid = np.array([t for t in device.times if t > t0], dtype=float)
+    if rate_per_mp_year <= 0 or not len(grid):
+        return np.zeros(0)
+    mean_per_year = rate_per_mp_year * device.model.megapixels
+    horizon = grid[-1]
+    if counting == "poisson":
+        n = rng.poisson(mean_per_year * (horizon - t0))
+        return np.sort(rng.uniform(t0, horizon, n))
+    if counting != "deterministic":
+        raise ValueError(f"counting must be 'poisson' or 'deterministic', not {counting!r}")
+    cumulative = np.rint(mean_per_year * (grid - t0)).astype(int)
+    steps = np.diff(np.concatenate([[0], cumulative]))
+    starts = np.concatenate([[t0], grid[:-1]])
+    return np.concatenate([np.sort(rng.uniform(a, b, k)) for a, b, k in zip(starts, grid, steps)])
+
+
+def records(x: np.ndarray, y: np.ndarray, kind: int, amplitude: np.ndarray, onset: np.ndarray, source: str) -> DefectCatalogue:
+    """Raw arrival records of one kind."""
+    n = len(x)
+    return DefectCatalogue(np.asarray(x, np.int64), np.asarray(y, np.int64), np.full(n, kind, np.int8),
+                           np.asarray(amplitude, float), np.asarray(onset, float), np.full(n, source, dtype=object))
+
+
+# --------------------------------------------------------------------------- base model
+@register_effect
+@dataclass
+class Growth(Effect):
+    """Defects arrive at a constant rate at uniform independent sites (cosmic-ray damage)."""
+
+    name = "growth"
+    description = "defects arrive as a Poisson process at a constant rate, at uniform independent sites"
+    stage = Stage.ARRIVAL
+    fields = ("captured",)
+
+    rate_partial: float = param(0.6659, "defects/MP/year", "arrival rate of partially stuck pixels (λ_ps)")
+    rate_stuck: float = param(0.0, "defects/MP/year", "arrival rate of stuck pixels (λ_s)")
+    amp_partial: float = param(3.0, "DN", "maximum offset of a partially stuck pixel (a_ps); d = r·a_ps, r ~ U[0, 1]")
+    amp_stuck: float = param(255.0, "DN", "maximum value of a stuck pixel (a_s); c = r·a_s")
+    counting: str = param("poisson", "", "'poisson' (random counts) or 'deterministic' (the paper's (T − T0)·λ)")
+
+    def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:
+        parts = []
+        for kind, rate, amp in ((PARTIAL, self.rate_partial, self.amp_partial), (STUCK, self.rate_stuck, self.amp_stuck)):
+            onset = constant_rate_onsets(rate, device, rng, self.counting)
+            x, y = uniform_sites(len(onset), device.model.shape, rng)
+            parts.append(records(x, y, kind, rng.uniform(0.0, 1.0, len(onset)) * amp, onset, self.name))
+        return DefectCatalogue.concatenate(parts)
+
+
+@register_effect
+@dataclass
+class Offset(Effect):
+    """Partially stuck (hot) pixels add a light-independent offset: y = i + d."""
+
+    name = "offset"
+    description = "partially stuck pixels add a constant offset to the light: y = i + d"
+    stage = Stage.DARK
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        sites = ctx.defects(PARTIAL)
+        if len(sites):
+            view = pixel_view(signal)
+            view[sites.y * ctx.shape[1] + sites.x] += sites.amplitude.astype(np.float32)[:, None]
+        return signal
+
+
+@register_effect
+@dataclass
+class Stuck(Effect):
+    """Stuck pixels output a constant whatever the light: y = c."""
+
+    name = "stuck"
+    description = "stuck pixels output a constant value whatever the light: y = c"
+    stage = Stage.STUCK
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        sites = ctx.defects(STUCK)
+        if len(sites):
+            view = pixel_view(signal)
+            view[sites.y * ctx.shape[1] + sites.x] = sites.amplitude.astype(np.float32)[:, None]
+        return signal
+
+
+@register_effect
+@dataclass
+class ReadNoise(Effect):
+    """Signal-independent temporal noise of the readout chain."""
+
+    name = "read_noise"
+    description = "temporal noise independent of the signal (readout), Gaussian with constant σ"
+    stage = Stage.NOISE
+
+    sigma: float = param(1.0, "DN", "standard deviation of the read noise")
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        if self.sigma > 0:
+            signal += np.float32(self.sigma) * rng.standard_normal(signal.shape, dtype=np.float32)
+        return signal
+
+
+# --------------------------------------------------------------------------- candidate effects
+@register_effect
+@dataclass
+class Prnu(Effect):
+    """Photo-response non-uniformity: each pixel has its own gain, y = i·(1 + k)."""
+
+    name = "prnu"
+    description = "per-pixel gain differences (PRNU): y = i·(1 + k), k ~ N(0, σ_k)"
+    stage = Stage.GAIN
+
+    sigma_k: float = param(0.01, "", "standard deviation of the relative gain k")
+
+    def realize(self, device: Device, rng: np.random.Generator) -> None:
+        device.state[self.key] = (self.sigma_k * rng.standard_normal(device.model.shape, dtype=np.float32)).astype(np.float32)
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        k = ctx.device.state[self.key]
+        signal *= per_pixel(1.0 + k, signal)
+        return signal
+
+
+@register_effect
+@dataclass
+class DarkCurrent(Effect):
+    """Hot pixels: a dark signal proportional to exposure time, doubling every T_d degrees."""
+
+    name = "dark_current"
+    description = "defect signal grows with exposure and temperature: d = b + r·t·2^((T − T_ref)/T_d)"
+    stage = Stage.DARK
+    fields = ("exposure_s", "temperature_c")
+
+    rate_max: float = param(20.0, "DN/s", "maximum dark-current rate of a defect at T_ref (r ~ U[0, rate_max])")
+    t_ref: float = param(25.0, "°C", "reference temperature")
+    t_double: float = param(7.0, "°C", "temperature increase that doubles the dark current (T_d)")
+
+    def realize(self, device: Device, rng: np.random.Generator) -> None:
+        cat = device.catalogue
+        cat.extra[f"{self.key}.rate"] = np.where(cat.kind == PARTIAL, rng.uniform(0, self.rate_max, len(cat)), 0.0)
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        sites = ctx.defects(PARTIAL)
+        if len(sites):
+            t = ctx.require("exposure_s", self.name)
+            temp = ctx.require("temperature_c", self.name)
+            dark = sites.extra[f"{self.key}.rate"] * t * 2.0 ** ((temp - self.t_ref) / self.t_double)
+            pixel_view(signal)[sites.y * ctx.shape[1] + sites.x] += dark.astype(np.float32)[:, None]
+        return signal
+
+
+@register_effect
+@dataclass
+class Gain(Effect):
+    """Analog gain: the signal (light and dark alike) scales with ISO."""
+
+    name = "gain"
+    description = "analog gain: the signal, defects included, scales as (ISO/ISO_ref)^exponent"
+    stage = Stage.AMPLIFY
+    fields = ("iso",)
+
+    iso_ref: float = param(100.0, "ISO", "ISO at which the gain is one")
+    exponent: float = param(1.0, "", "power of the ISO ratio (1 for a linear amplifier)")
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        iso = ctx.require("iso", self.name)
+        signal *= np.float32((iso / self.iso_ref) ** self.exponent)
+        return signal
+
+
+@register_effect
+@dataclass
+class Nonlinearity(Effect):
+    """A global response curve compressing the highlights: y = i − β·i²/full_scale."""
+
+    name = "nonlinearity"
+    description = "global response curve: y = i − β·i²/full_scale (compression near saturation)"
+    stage = Stage.RESPONSE
+
+    beta: float = param(0.05, "", "fraction of the signal lost at full scale")
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        signal -= np.float32(self.beta / ctx.full_scale) * signal * signal
+        return signal
+
+
+@register_effect
+@dataclass
+class ShotNoise(Effect):
+    """Photon shot noise: temporal variance grows with the signal, σ² = σ_read² + g·μ."""
+
+    name = "shot_noise"
+    description = "temporal variance grows with the mean signal: σ² = σ_read² + g·μ (photon shot noise)"
+    stage = Stage.NOISE
+
+    g: float = param(0.5, "DN", "conversion gain: variance added per DN of mean signal")
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        if self.g > 0:
+            sd = np.sqrt(np.float32(self.g) * np.maximum(signal, 0.0))
+            signal += sd * rng.standard_normal(signal.shape, dtype=np.float32)
+        return signal
+
+
+@register_effect
+@dataclass
+class Clusters(Effect):
+    """Defects arrive in clusters (a Thomas process) rather than at independent sites."""
+
+    name = "clusters"
+    description = "defects arrive in spatial clusters (Thomas process: parents uniform, offspring Gaussian around them)"
+    stage = Stage.ARRIVAL
+    fields = ("captured",)
+
+    rate: float = param(2.0, "clusters/MP/year", "arrival rate of clusters")
+    mean_size: float = param(4.0, "defects", "mean number of defects per cluster (Poisson)")
+    spread: float = param(3.0, "px", "standard deviation of a defect's offset from its cluster centre")
+    amplitude: float = param(3.0, "DN", "maximum offset of a clustered partially stuck pixel")
+
+    def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:
+        h, w = device.model.shape
+        onset_parent = constant_rate_onsets(self.rate, device, rng, "poisson")
+        px, py = rng.uniform(0, w, len(onset_parent)), rng.uniform(0, h, len(onset_parent))
+        sizes = rng.poisson(self.mean_size, len(onset_parent))
+        parent = np.repeat(np.arange(len(onset_parent)), sizes)
+        x = np.floor(px[parent] + self.spread * rng.standard_normal(len(parent))).astype(np.int64)
+        y = np.floor(py[parent] + self.spread * rng.standard_normal(len(parent))).astype(np.int64)
+        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+        amp = rng.uniform(0, 1, len(parent)) * self.amplitude
+        return records(x[inside], y[inside], PARTIAL, amp[inside], onset_parent[parent][inside], self.name)
+
+
+@register_effect
+@dataclass
+class AcceleratingGrowth(Effect):
+    """Defects arrive at a rate that changes with age: cumulative Λ(t) = θ·t^β per megapixel."""
+
+    name = "accelerating_growth"
+    description = "arrival rate changing with age: expected defects Λ(t) = θ·(t − t0)^β per megapixel"
+    stage = Stage.ARRIVAL
+    fields = ("captured",)
+
+    theta: float = param(0.5, "defects/MP/year^β", "scale of the cumulative intensity")
+    beta: float = param(2.0, "", "shape: 1 is constant rate, > 1 accelerating, < 1 decelerating")
+    amplitude: float = param(3.0, "DN", "maximum offset of a partially stuck pixel from this process")
+
+    def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:
+        t0 = device.model.t0
+        horizon = max([t for t in device.times if t > t0], default=t0)
+        span = horizon - t0
+        if span <= 0 or self.theta <= 0:
+            return DefectCatalogue.empty()
+        n = rng.poisson(self.theta * device.model.megapixels * span**self.beta)
+        onset = np.sort(t0 + span * rng.uniform(0, 1, n) ** (1.0 / self.beta))  # inverse of Λ(t)/Λ(T)
+        x, y = uniform_sites(n, device.model.shape, rng)
+        return records(x, y, PARTIAL, rng.uniform(0, 1, n) * self.amplitude, onset, self.name)
+
+
+def describe_effects() -> list[dict[str, Any]]:
+    """Every registered effect: name, description, stage, needed fields and parameters."""
+    from .model import EFFECTS
+
+    return [{"name": cls.name, "description": cls.description, "stage": cls.stage.name.lower(),
+             "fields": list(cls.fields), "params": cls.parameter_info()} for cls in EFFECTS.values()]

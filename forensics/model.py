@@ -1,0 +1,464 @@
+"""The physical sensor model: a list of composable effects.
+
+A :class:`SensorModel` is an image size, a bit depth and a list of
+:class:`Effect` objects.  :meth:`SensorModel.realize` draws one *device*:
+its fixed patterns and its whole defect history (a :class:`DefectCatalogue`).
+:meth:`Device.expose` turns a scene (incident light in output DN) into an
+image taken at a given time and condition.
+
+Effects apply in physical order, by :class:`Stage`:
+
+``ARRIVAL``  defect arrival processes add records to the catalogue (device creation only)
+``SCENE``    scene light (vignetting, flat-field level, …)
+``GAIN``     per-pixel gain (PRNU)
+``DARK``     dark signal and offsets (partially stuck / hot pixels, dark current)
+``AMPLIFY``  analog gain (ISO)
+``RESPONSE`` global response curve (non-linearity)
+``STUCK``    stuck values override the signal
+``NOISE``    temporal noise
+then clipping to the bit depth's range and rounding, done by the model itself.
+
+Because every effect only reads the shared :class:`FrameContext` and
+transforms the signal at its own stage, adding an effect never requires a
+special case in another: e.g. a stuck pixel overrides a partially stuck one
+simply because ``STUCK`` comes after ``DARK``.
+
+The defect history obeys *once defective, always defective*: records are
+never removed; a site keeps its first partially stuck record, and a stuck
+record (which overrides from its onset on) is kept only if it is the site's
+first stuck record.
+
+An effect is a dataclass whose fields are its parameters (documented with
+``field(metadata={"unit": ..., "doc": ...})``).  It declares ``name``,
+``description``, ``stage`` and the manifest ``fields`` it needs, and
+implements ``realize`` (device state) and/or ``apply`` (per frame).  The
+model-checking code adds ``fit`` and ``signature``; the base class leaves
+room for them.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import importlib
+import importlib.util
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .errors import InputError, UsageError
+
+PARTIAL = 0
+STUCK = 1
+KIND_NAMES = {PARTIAL: "partial", STUCK: "stuck"}
+KIND_CODES = {v: k for k, v in KIND_NAMES.items()}
+
+
+class Stage(enum.IntEnum):
+    """Where an effect acts in the signal chain; effects run in increasing order."""
+
+    ARRIVAL = 0
+    SCENE = 10
+    GAIN = 20
+    DARK = 30
+    AMPLIFY = 40
+    RESPONSE = 50
+    STUCK = 60
+    NOISE = 70
+
+
+# --------------------------------------------------------------------------- defect catalogue
+@dataclass
+class DefectCatalogue:
+    """A device's defect history: one record per defect, arrays of equal length.
+
+    Attributes
+    ----------
+    x, y
+        Column and row of the site.
+    kind
+        :data:`PARTIAL` (y = i + d) or :data:`STUCK` (y = c).
+    amplitude
+        d for partially stuck records, c for stuck ones, in output DN.
+    onset
+        Time the defect appears (decimal year).
+    source
+        Name of the arrival effect that produced the record.
+    extra
+        Per-record attributes drawn by other effects (e.g. a dark-current rate),
+        arrays of the same length.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    kind: np.ndarray
+    amplitude: np.ndarray
+    onset: np.ndarray
+    source: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls) -> "DefectCatalogue":
+        return cls(*(np.zeros(0, dtype=t) for t in (np.int64, np.int64, np.int8, np.float64, np.float64)),
+                   source=np.zeros(0, dtype=object))
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def select(self, mask: np.ndarray) -> "DefectCatalogue":
+        """The records where ``mask`` is true (or at the given indices)."""
+        return DefectCatalogue(self.x[mask], self.y[mask], self.kind[mask], self.amplitude[mask], self.onset[mask],
+                               self.source[mask], {k: v[mask] for k, v in self.extra.items()})
+
+    def active(self, time: float) -> np.ndarray:
+        """Boolean mask of the records present at ``time``."""
+        return self.onset <= time
+
+    def at(self, time: float) -> "DefectCatalogue":
+        """The records present at ``time``."""
+        return self.select(self.active(time))
+
+    def effective(self, time: float) -> "DefectCatalogue":
+        """One record per defective site at ``time``: the stuck record where a site has one, else its partial record."""
+        now = self.at(time)
+        if not len(now):
+            return now
+        order = np.lexsort((-now.kind, now.y, now.x))  # per site, stuck first
+        sites = now.y[order] * (now.x.max() + 1) + now.x[order]
+        first = np.ones(len(order), bool)
+        first[1:] = sites[1:] != sites[:-1]
+        return now.select(np.sort(order[first]))
+
+    def counts(self, times: Iterable[float], kind: int | None = None) -> np.ndarray:
+        """Number of defective sites present at each time (optionally of one kind, after stuck overrides)."""
+        out = []
+        for t in times:
+            eff = self.effective(t)
+            out.append(len(eff) if kind is None else int(np.sum(eff.kind == kind)))
+        return np.asarray(out)
+
+    def to_rows(self) -> list[dict[str, Any]]:
+        """Rows for ``defects.csv``: x, y, kind, amplitude, onset_year, source, extras."""
+        rows = []
+        for i in range(len(self)):
+            row = {"x": int(self.x[i]), "y": int(self.y[i]), "kind": KIND_NAMES[int(self.kind[i])],
+                   "amplitude": float(self.amplitude[i]), "onset_year": float(self.onset[i]),
+                   "source": str(self.source[i])}
+            row.update({k: float(v[i]) for k, v in self.extra.items()})
+            rows.append(row)
+        return rows
+
+    @classmethod
+    def concatenate(cls, parts: Sequence["DefectCatalogue"]) -> "DefectCatalogue":
+        if not parts:
+            return cls.empty()
+        keys = set().union(*(p.extra for p in parts))
+        extra = {k: np.concatenate([p.extra.get(k, np.full(len(p), np.nan)) for p in parts]) for k in keys}
+        return cls(*(np.concatenate([getattr(p, a) for p in parts]) for a in ("x", "y", "kind", "amplitude", "onset",
+                                                                               "source")), extra=extra)
+
+    def resolved(self) -> "DefectCatalogue":
+        """Apply *once defective, always defective* to a set of raw arrivals.
+
+        Per site and kind only the earliest record is kept; a partially stuck
+        record arriving after the site became stuck is dropped (the site is
+        already defective).  The result is sorted by onset.
+        """
+        if not len(self):
+            return self
+        order = np.argsort(self.onset, kind="stable")
+        cat = self.select(order)
+        width = int(cat.x.max()) + 1
+        site = cat.y * width + cat.x
+        # earliest record per (site, kind): np.unique returns first occurrences in onset order
+        _, first = np.unique(site * 2 + cat.kind, return_index=True)
+        keep = np.zeros(len(cat), bool)
+        keep[first] = True
+        # drop partial records whose site already had a stuck record earlier
+        is_stuck = keep & (cat.kind == STUCK)
+        stuck_site, stuck_onset = site[is_stuck], cat.onset[is_stuck]
+        if len(stuck_site):
+            by_site = np.argsort(stuck_site)
+            stuck_site, stuck_onset = stuck_site[by_site], stuck_onset[by_site]
+            pos = np.clip(np.searchsorted(stuck_site, site), 0, len(stuck_site) - 1)
+            late = (cat.kind == PARTIAL) & (stuck_site[pos] == site) & (stuck_onset[pos] <= cat.onset)
+            keep &= ~late
+        return cat.select(keep)
+
+
+# --------------------------------------------------------------------------- frames
+@dataclass
+class FrameContext:
+    """Everything an effect may read while one frame is formed."""
+
+    device: "Device"
+    time: float
+    exposure_s: float | None = None
+    iso: float | None = None
+    temperature_c: float | None = None
+    _sites: dict[int, DefectCatalogue] = field(default_factory=dict, repr=False)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.device.model.shape
+
+    @property
+    def full_scale(self) -> float:
+        return self.device.model.full_scale
+
+    def defects(self, kind: int) -> DefectCatalogue:
+        """The defects of ``kind`` in effect at this frame's time (stuck overrides applied)."""
+        if kind not in self._sites:
+            eff = self.device.catalogue.effective(self.time)
+            self._sites[kind] = eff.select(eff.kind == kind)
+        return self._sites[kind]
+
+    def require(self, name: str, effect: str) -> float:
+        """A condition field the effect needs; raises InputError naming it when absent."""
+        value = getattr(self, name)
+        if value is None:
+            raise InputError(f"the effect '{effect}' needs the field '{name}' for every frame; add it to the manifest")
+        return float(value)
+
+
+def pixel_view(signal: np.ndarray) -> np.ndarray:
+    """A ``(H*W, C)`` view of an ``(H, W)`` or ``(H, W, C)`` signal, so site indices address every channel."""
+    if signal.ndim == 2:
+        return signal.reshape(-1, 1)
+    return signal.reshape(signal.shape[0] * signal.shape[1], signal.shape[2])
+
+
+def per_pixel(pattern: np.ndarray, signal: np.ndarray) -> np.ndarray:
+    """Broadcast an ``(H, W)`` pattern against an ``(H, W)`` or ``(H, W, C)`` signal."""
+    return pattern if signal.ndim == 2 else pattern[..., None]
+
+
+# --------------------------------------------------------------------------- effects
+@dataclass
+class Effect:
+    """Base class of every effect.  Subclasses are dataclasses whose fields are parameters.
+
+    Class attributes
+    ----------------
+    name : str
+        Registry name (``forensics model effects`` lists them).
+    description : str
+        One line of physics.
+    stage : Stage
+        Where it acts in the chain.
+    fields : tuple of str
+        Manifest fields it needs (``exposure_s``, ``iso``, ``temperature_c``, ``captured``).
+    """
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    stage: ClassVar[Stage] = Stage.SCENE
+    fields: ClassVar[tuple[str, ...]] = ()
+
+    def realize(self, device: "Device", rng: np.random.Generator) -> None:
+        """Draw this effect's per-device state into ``device.state[self.key]`` (default: nothing)."""
+
+    def arrivals(self, device: "Device", rng: np.random.Generator) -> DefectCatalogue | None:
+        """For ``ARRIVAL`` effects: the defect records this process contributes (before resolution)."""
+        return None
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        """Transform the float32 ``signal`` for one frame (may work in place and return it)."""
+        return signal
+
+    @property
+    def key(self) -> str:
+        return self.name or type(self).__name__
+
+    def params(self) -> dict[str, Any]:
+        """Parameter values by name."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def parameter_info(cls) -> list[dict[str, Any]]:
+        """Name, default, unit and meaning of each parameter."""
+        out = []
+        for f in dataclasses.fields(cls):
+            default = f.default if f.default is not dataclasses.MISSING else None
+            out.append({"name": f.name, "default": default, "unit": f.metadata.get("unit", ""),
+                        "doc": f.metadata.get("doc", "")})
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"effect": self.key, "params": self.params()}
+
+
+def param(default: Any, unit: str = "", doc: str = "") -> Any:
+    """A dataclass field for an effect parameter, with its unit and meaning."""
+    return field(default=default, metadata={"unit": unit, "doc": doc})
+
+
+EFFECTS: dict[str, type[Effect]] = {}
+
+
+def register_effect(cls: type[Effect]) -> type[Effect]:
+    """Class decorator adding an effect to the registry under ``cls.name``."""
+    if not cls.name:
+        raise ValueError(f"{cls.__name__} has no name")
+    EFFECTS[cls.name] = cls
+    return cls
+
+
+def make_effect(spec: str, **params: Any) -> Effect:
+    """An effect from a registry name, ``module:Class`` or ``path/to/file.py:Class``.
+
+    Raises
+    ------
+    UsageError
+        If the name is unknown or the class cannot be loaded.
+    """
+    from . import effects as _builtin  # noqa: F401  (fills the registry)
+
+    if spec in EFFECTS:
+        return EFFECTS[spec](**params)
+    if ":" not in spec:
+        raise UsageError(f"unknown effect '{spec}'; see 'forensics model effects' or give module:Class or file.py:Class")
+    where, cls_name = spec.rsplit(":", 1)
+    try:
+        if where.endswith(".py"):
+            path = Path(where)
+            if not path.is_file():
+                raise UsageError(f"{where}: no such file for the effect '{spec}'")
+            mod_spec = importlib.util.spec_from_file_location(f"forensics_user_{path.stem}", path)
+            module = importlib.util.module_from_spec(mod_spec)  # type: ignore[arg-type]
+            mod_spec.loader.exec_module(module)  # type: ignore[union-attr]
+        else:
+            module = importlib.import_module(where)
+        cls = getattr(module, cls_name)
+    except (ImportError, AttributeError, SyntaxError) as exc:
+        raise UsageError(f"cannot load the effect '{spec}': {exc}") from exc
+    if not (isinstance(cls, type) and issubclass(cls, Effect)):
+        raise UsageError(f"'{spec}' is not a subclass of forensics.model.Effect")
+    return cls(**params)
+
+
+# --------------------------------------------------------------------------- model and device
+@dataclass
+class SensorModel:
+    """An image size, a bit depth, a start of ageing and an ordered list of effects.
+
+    Parameters
+    ----------
+    shape
+        ``(height, width)`` of the pixel array.
+    bit_depth
+        Output bits (8 → uint8, up to 16 → uint16); output saturates at ``2**bit_depth - 1``.
+    effects
+        The effects; they run sorted by :class:`Stage` (stable for equal stages).
+    t0
+        Decimal year from which defects arrive.
+    """
+
+    shape: tuple[int, int]
+    bit_depth: int = 8
+    effects: list[Effect] = field(default_factory=list)
+    t0: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.shape = (int(self.shape[0]), int(self.shape[1]))
+        if not 1 <= self.bit_depth <= 16:
+            raise UsageError(f"bit depth {self.bit_depth} not supported (1–16)")
+        self.effects = sorted(self.effects, key=lambda e: e.stage)
+
+    @property
+    def full_scale(self) -> float:
+        return float(2**self.bit_depth - 1)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.uint8 if self.bit_depth <= 8 else np.uint16)
+
+    @property
+    def megapixels(self) -> float:
+        return self.shape[0] * self.shape[1] / 1e6
+
+    def effect(self, name: str) -> Effect | None:
+        """The effect registered under ``name``, if the model has it."""
+        return next((e for e in self.effects if e.key == name), None)
+
+    def with_effects(self, *extra: Effect) -> "SensorModel":
+        """A copy of the model with further effects."""
+        return dataclasses.replace(self, effects=[*self.effects, *extra])
+
+    def realize(self, rng: np.random.Generator, times: Sequence[float]) -> "Device":
+        """Draw one device: its defect history up to ``max(times)`` and every fixed pattern.
+
+        ``times`` are the sample points (decimal years) the device will be imaged
+        at; deterministic arrival counts use them as the grid.
+        """
+        device = Device(model=self, times=tuple(sorted(float(t) for t in times)))
+        parts = []
+        for effect in self.effects:
+            if effect.stage == Stage.ARRIVAL:
+                part = effect.arrivals(device, rng)
+                if part is not None and len(part):
+                    parts.append(part)
+        device.catalogue = DefectCatalogue.concatenate(parts).resolved()
+        for effect in self.effects:
+            effect.realize(device, rng)
+        return device
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"shape": list(self.shape), "bit_depth": self.bit_depth, "t0": self.t0,
+                "effects": [e.to_dict() for e in self.effects]}
+
+    @classmethod
+    def from_dict(cls, obj: dict[str, Any]) -> "SensorModel":
+        effects = [make_effect(e["effect"], **e.get("params", {})) for e in obj.get("effects", [])]
+        return cls(shape=tuple(obj["shape"]), bit_depth=int(obj.get("bit_depth", 8)), effects=effects,
+                   t0=float(obj.get("t0", 0.0)))
+
+
+@dataclass
+class Device:
+    """One realised sensor: a model, its defect catalogue and per-effect fixed state."""
+
+    model: SensorModel
+    times: tuple[float, ...] = ()
+    catalogue: DefectCatalogue = field(default_factory=DefectCatalogue.empty)
+    state: dict[str, Any] = field(default_factory=dict)
+
+    def context(self, time: float, exposure_s: float | None = None, iso: float | None = None,
+                temperature_c: float | None = None) -> FrameContext:
+        return FrameContext(self, float(time), exposure_s, iso, temperature_c)
+
+    def signal(self, scene: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        """The analogue signal (float32, before clipping and rounding) for ``scene`` under ``ctx``."""
+        h, w = self.model.shape
+        if scene.shape[:2] != (h, w):
+            raise InputError(f"scene of shape {scene.shape[:2]} does not match the sensor's {(h, w)}")
+        signal = np.array(scene, dtype=np.float32, copy=True)
+        for effect in self.model.effects:
+            if effect.stage != Stage.ARRIVAL:
+                signal = effect.apply(signal, ctx, rng)
+        return signal
+
+    def expose(self, scene: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        """An image: the signal clipped to ``[0, full_scale]`` and rounded to the model's dtype."""
+        return quantize(self.signal(scene, ctx, rng), self.model.full_scale, self.model.dtype)
+
+
+def quantize(signal: np.ndarray, full_scale: float, dtype: np.dtype) -> np.ndarray:
+    """Clip to ``[0, full_scale]``, round half to even, cast."""
+    out = np.clip(signal, 0.0, full_scale, out=signal)
+    np.rint(out, out=out)
+    return out.astype(dtype)
+
+
+def load_model(path: str | Path) -> SensorModel:
+    """A model from a ``sensor.json`` written by the simulator (its ``model`` entry)."""
+    import json
+
+    path = Path(path)
+    try:
+        obj = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read the sensor description ({exc})") from exc
+    return SensorModel.from_dict(obj.get("model", obj))

@@ -1,0 +1,223 @@
+"""The reference paper's ageing simulation (AGEDIMAGESEQUENCE) and scene sets.
+
+:func:`age_dataset` takes a source dataset (images captured at T0), realises
+one simulated device from a :class:`~forensics.model.SensorModel`, and writes
+one dataset per sample time: every source image with the defects the device
+has at that time.  The device's defect history is shared by all its images
+(one device, one history), and earlier defects persist (*once defective,
+always defective*).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .atomic import atomic_directory, refuse_inputs, write_json
+from .dataset import Dataset, write_manifest
+from .errors import InputError
+from .io import write_image
+from .model import Device, SensorModel
+from .progress import Progress, no_progress
+from .scenes import scene_image
+
+
+def parse_years(spec: str) -> list[float]:
+    """Parse ``start:stop:step`` (inclusive of stop) or a comma list into sample ages in years.
+
+    >>> parse_years("0:96:8")[:3], len(parse_years("0:96:8"))
+    ([0.0, 8.0, 16.0], 13)
+    """
+    spec = spec.strip()
+    try:
+        if ":" in spec:
+            parts = [float(p) for p in spec.split(":")]
+            if len(parts) != 3 or parts[2] <= 0 or parts[1] < parts[0]:
+                raise ValueError
+            start, stop, step = parts
+            n = int(np.floor((stop - start) / step + 1e-9)) + 1
+            years = [start + i * step for i in range(n)]
+        else:
+            years = sorted(float(p) for p in spec.split(","))
+    except ValueError:
+        raise InputError(f"--years '{spec}': give START:STOP:STEP with STEP > 0 (e.g. 0:96:8) or a list (0,4,8)") from None
+    if any(y < 0 for y in years):
+        raise InputError(f"--years '{spec}': ages must be ≥ 0")
+    return years
+
+
+def step_name(age: float) -> str:
+    """Folder name of the dataset at ``age`` years, e.g. ``year_008`` or ``year_002.5``."""
+    return f"year_{int(age):03d}" if float(age).is_integer() else f"year_{age:05.1f}"
+
+
+@dataclass
+class AgeingResult:
+    """What :func:`age_dataset` wrote."""
+
+    out: Path
+    steps: list[Path]
+    ages: list[float]
+    n_images: int
+    catalogue_rows: int
+    counts: dict[str, list[int]] = field(default_factory=dict)
+    sensor: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"out": str(self.out), "steps": [str(s) for s in self.steps], "ages": self.ages,
+                "n_images": self.n_images, "defects": self.catalogue_rows, "counts": self.counts,
+                "sensor": self.sensor}
+
+
+def source_bit_depth(dtype: np.dtype) -> int:
+    """8 for uint8 sources, 16 for uint16; other dtypes are refused."""
+    if dtype == np.uint8:
+        return 8
+    if dtype == np.uint16:
+        return 16
+    raise InputError(f"source images of dtype {dtype} cannot be aged; use 8- or 16-bit images")
+
+
+def age_dataset(
+    source: Dataset,
+    out: str | os.PathLike,
+    model: SensorModel,
+    ages: list[float],
+    seed: int,
+    start_year: float | None = None,
+    sensor_name: str | None = None,
+    force: bool = False,
+    progress: Progress = no_progress,
+    image_format: str | None = None,
+) -> AgeingResult:
+    """Age every image of ``source`` over ``ages`` (years after T0) and write one dataset per age.
+
+    Parameters
+    ----------
+    source
+        Images captured at T0 (all one size).  Each is read once.
+    out
+        Output folder (written atomically; refused if it exists unless ``force``).
+    model
+        The sensor model; its ``shape`` must match the images and its ``t0`` is T0.
+    ages
+        Sample ages in years (e.g. ``parse_years('0:96:8')``).
+    seed
+        Seed of the device's random history (and of any per-frame noise).
+    start_year
+        Decimal year of T0 written into the manifests (default ``model.t0``).
+    image_format
+        Extension of the outputs (default: the source's if PNG/TIFF, else ``.png``).
+
+    Writes ``OUT/year_NNN/`` (images + ``manifest.csv``), ``OUT/defects.csv``
+    (the ground-truth catalogue: x, y, kind, amplitude, onset_year) and
+    ``OUT/sensor.json`` (size, parameters, seed).
+    """
+    out = Path(out)
+    refuse_inputs(out, [source.root])
+    shape = source.shape()
+    first_dtype = source.frames[0].info().dtype
+    if tuple(shape[:2]) != tuple(model.shape):
+        raise InputError(f"{source.root}: images are {shape[1]}×{shape[0]} but the sensor is {model.shape[1]}×{model.shape[0]}")
+    bits = source_bit_depth(first_dtype)
+    if bits != model.bit_depth:
+        raise InputError(f"{source.root}: images are {bits}-bit but the sensor model is {model.bit_depth}-bit")
+    if start_year is not None:
+        model = dataclasses.replace(model, t0=float(start_year))
+    t0 = model.t0
+    times = [t0 + a for a in ages]
+    rng = np.random.default_rng(seed)
+    device = model.realize(rng, times)
+    contexts = [device.context(t) for t in times]
+    names = [step_name(a) for a in ages]
+    rows: list[list[dict[str, Any]]] = [[] for _ in ages]
+    with atomic_directory(out, force=force) as tmp:
+        for name in names:
+            (tmp / name).mkdir()
+        for index, frame in enumerate(progress(source.frames, total=len(source), desc="ageing")):
+            image = frame.load()
+            if image.dtype != first_dtype or image.shape != shape:
+                raise InputError(f"{frame.path}: {image.dtype} {image.shape} differs from the first image "
+                                 f"({first_dtype} {shape}); a source set must be uniform")
+            ext = image_format or (frame.path.suffix.lower() if frame.path.suffix.lower() in (".png", ".tif", ".tiff") else ".png")
+            stem = Path(frame.file).stem
+            for step, (ctx, name) in enumerate(zip(contexts, names)):
+                frame_rng = np.random.default_rng([seed, index, step])
+                aged = device.expose(image, ctx, frame_rng)
+                fname = f"{stem}{ext}"
+                write_image(tmp / name / fname, aged)
+                rows[step].append({"file": fname, "device": f"sim-{sensor_name or 'custom'}-{seed}",
+                                   "captured": ctx.time, "exposure_s": frame.exposure_s, "iso": frame.iso,
+                                   "temperature_c": frame.temperature_c, "subject": frame.subject,
+                                   "source_file": frame.file, "age_years": ages[step]})
+        for name, step_rows in zip(names, rows):
+            write_manifest(tmp / name / "manifest.csv", step_rows)
+        write_catalogue(tmp / "defects.csv", device)
+        sensor = {"size": {"width": model.shape[1], "height": model.shape[0], "channels": 1 if len(shape) == 2 else shape[2]},
+                  "sensor": sensor_name, "seed": seed, "t0": t0, "ages": ages, "model": model.to_dict(),
+                  "source": str(source.root), "forensics_version": __version__}
+        write_json(tmp / "sensor.json", sensor)
+    counts = {"partial": [int(c) for c in device.catalogue.counts(times, kind=0)],
+              "stuck": [int(c) for c in device.catalogue.counts(times, kind=1)]}
+    return AgeingResult(out, [out / n for n in names], list(ages), len(source), len(device.catalogue), counts, sensor)
+
+
+def write_catalogue(path: str | os.PathLike, device: Device, force: bool = False) -> Path:
+    """Write the device's ground-truth defects as CSV: x, y, kind, amplitude, onset_year, source, extras."""
+    from .atomic import atomic_file
+    import csv
+
+    rows = device.catalogue.to_rows()
+    columns = ["x", "y", "kind", "amplitude", "onset_year", "source"] + sorted(device.catalogue.extra)
+    with atomic_file(path, force=force, mode="w") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    return Path(path)
+
+
+def read_catalogue(path: str | os.PathLike):
+    """Read a ``defects.csv`` back into a :class:`~forensics.model.DefectCatalogue`."""
+    import csv
+
+    from .model import KIND_CODES, DefectCatalogue
+
+    path = Path(path)
+    try:
+        with open(path, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the defect catalogue ({exc})") from exc
+    try:
+        base = {"x", "y", "kind", "amplitude", "onset_year", "source"}
+        extras = [k for k in (rows[0] if rows else {}) if k not in base]
+        return DefectCatalogue(
+            np.array([int(r["x"]) for r in rows], np.int64), np.array([int(r["y"]) for r in rows], np.int64),
+            np.array([KIND_CODES[r["kind"]] for r in rows], np.int8), np.array([float(r["amplitude"]) for r in rows]),
+            np.array([float(r["onset_year"]) for r in rows]), np.array([r.get("source", "") for r in rows], dtype=object),
+            {k: np.array([float(r[k]) for r in rows]) for k in extras})
+    except (KeyError, ValueError) as exc:
+        raise InputError(f"{path}: malformed defect catalogue ({exc}); expected columns x, y, kind, amplitude, onset_year") from exc
+
+
+def make_scenes(out: str | os.PathLike, n: int, shape: tuple[int, int], seed: int, channels: int = 1, bit_depth: int = 8,
+                kind: str = "mixed", start_year: float | None = None, device: str | None = None, force: bool = False,
+                progress: Progress = no_progress, ext: str = ".png") -> Dataset:
+    """Write ``n`` scene images (a dataset with a manifest) for users who have no images of their own."""
+    from .dataset import open_dataset
+
+    out = Path(out)
+    rng = np.random.default_rng(seed)
+    rows = []
+    with atomic_directory(out, force=force) as tmp:
+        for i in progress(range(n), total=n, desc="scenes"):
+            name = f"scene_{i:04d}{ext}"
+            write_image(tmp / name, scene_image(shape, rng, channels, bit_depth, kind))
+            rows.append({"file": name, "device": device, "captured": start_year, "subject": f"scene {i}"})
+        write_manifest(tmp / "manifest.csv", rows)
+    return open_dataset(out)
