@@ -4,7 +4,8 @@ The manifest has a header row and the columns
 
 ============== =========================================================
 ``file``       required; path of the image relative to the folder
-``device``     device identifier (free text)
+``device``     device identifier (free text; from EXIF make, model and body serial when
+               the manifest has none and the file has a serial)
 ``captured``   ISO-8601 date or datetime (``2009-07-01``, ``2009-07-01T12:30:00``)
                or a decimal year (``2009.5``)
 ``exposure_s`` exposure time in seconds
@@ -117,6 +118,8 @@ class Frame:
                 self._exposure_s = info.exposure_s
             if self._iso is None:
                 self._iso = info.iso
+            if self.device is None and info.serial:  # a body serial identifies a device; make/model alone do not
+                self.device = f"{info.make or ''} {info.model or ''} #{info.serial}".strip()
             self._exif, self._exif_done = info, True
         assert self._exif is not None
         return self._exif
@@ -149,6 +152,8 @@ class Frame:
         """A field by manifest column name (standard or extra)."""
         if name in ("captured", "exposure_s", "iso"):
             return getattr(self, name)
+        if name == "device" and self.device is None and not self._exif_done:
+            self.info()
         if name in ("file", "device", "subject", "temperature_c"):
             return getattr(self, name)
         return self.extra.get(name)
@@ -193,16 +198,16 @@ class Dataset:
         """
         if not self.frames:
             raise InputError(f"{self.root}: dataset has no images")
-        first = self.frames[0].info()
-        for frame in self.frames[1:]:
-            info = frame.info()
-            if (info.width, info.height, info.channels) != (first.width, first.height, first.channels):
+        infos = [frame.info() for frame in self.frames]
+        sizes = [(i.width, i.height, i.channels) for i in infos]
+        common = max(set(sizes), key=sizes.count)  # the majority size; the odd ones are named
+        for info, size in zip(infos, sizes):
+            if size != common:
                 raise InputError(
-                    f"{frame.path}: size {info.width}×{info.height}×{info.channels} differs from "
-                    f"{first.path.name} ({first.width}×{first.height}×{first.channels}); "
-                    "a dataset's images must all have one size"
+                    f"{info.path}: size {size[0]}×{size[1]}×{size[2]} differs from the other images' "
+                    f"{common[0]}×{common[1]}×{common[2]}; a dataset's images must all have one size"
                 )
-        return first.shape
+        return infos[0].shape
 
     def group_by(self, key: str | Callable[[Frame], Any]) -> dict[Any, "Dataset"]:
         """Split into sub-datasets by a manifest column name or a function of the frame, in first-seen order."""

@@ -88,7 +88,7 @@ def _open_input(path: Path):
     if inp is None:
         msg = oiio.geterror().strip().splitlines()
         detail = msg[0] if msg else "unrecognised format"
-        raise InputError(f"{path}: cannot read as an image ({detail}); check the file is a complete PNG/TIFF/JPEG/BMP")
+        raise InputError(f"{path}: cannot read the image ({detail}); check the file is a complete PNG/TIFF/JPEG/BMP or raw file")
     return inp
 
 
@@ -180,7 +180,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         inp.close()
     if failed:
         why = detail[0] if detail else "decoding failed"
-        raise InputError(f"{path}: corrupt or truncated image ({why}); replace or remove the file")
+        raise InputError(f"{path}: cannot read the image, corrupt or truncated ({why}); replace or remove the file")
     pixels = np.asarray(pixels)
     if pixels.ndim == 3 and pixels.shape[2] in (2, 4):
         pixels = pixels[..., :-1]  # drop alpha

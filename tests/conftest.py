@@ -1,0 +1,44 @@
+"""Shared test helpers."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture
+def cli(capsys):
+    """Run the ``forensics`` command in-process; returns (exit code, stdout, stderr)."""
+    from cli.main import main
+
+    def run(*argv: str) -> tuple[int, str, str]:
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as exc:  # argparse usage errors
+            code = int(exc.code or 0)
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run
+
+
+@pytest.fixture
+def cli_json(cli):
+    """Run a command with --json and parse stdout; fails the test on a non-zero exit."""
+
+    def run(*argv: str) -> dict:
+        code, out, err = cli(*argv, "--json")
+        assert code == 0, err
+        return json.loads(out)
+
+    return run
+
+
+def dresden_or_skip() -> Path:
+    path = SHARED_DATA / "dresden-nikon"
+    if not path.is_dir():
+        pytest.skip(f"real-camera data not found at {path} (present in CI; absent on a fresh machine)")
+    return path
