@@ -20,10 +20,12 @@ from .model import (
     Device,
     Effect,
     FrameContext,
+    Pattern,
     Stage,
     param,
     per_pixel,
     pixel_view,
+    record_blocks,
     register_effect,
 )
 
@@ -59,6 +61,20 @@ def constant_rate_onsets(rate_per_mp_year: float, device: Device, rng: np.random
     return np.concatenate([np.sort(rng.uniform(a, b, k)) for a, b, k in zip(starts, grid, steps)])
 
 
+def uniform_detect_fraction(amplitude: float, threshold: float) -> float:
+    """Fraction of amplitudes ``r·amplitude``, ``r ~ U[0, 1]``, above ``threshold``."""
+    if not np.isfinite(threshold) or threshold <= 0:
+        return 1.0
+    if amplitude <= threshold:
+        return 0.0
+    return 1.0 - threshold / amplitude
+
+
+def elapsed(device: Device, times: Any) -> np.ndarray:
+    """Years since the model's ``t0`` at each time (zero before it)."""
+    return np.maximum(np.asarray(times, float) - device.model.t0, 0.0)
+
+
 def records(x: np.ndarray, y: np.ndarray, kind: int, amplitude: np.ndarray, onset: np.ndarray, source: str) -> DefectCatalogue:
     """Raw arrival records of one kind."""
     n = len(x)
@@ -76,12 +92,26 @@ class Growth(Effect):
     description = "defects arrive as a Poisson process at a constant rate, at uniform independent sites"
     stage = Stage.ARRIVAL
     fields = ("captured",)
+    role = "base"
+    self_fitted = ("amp_partial", "amp_stuck")
 
-    rate_partial: float = param(0.6659, "defects/MP/year", "arrival rate of partially stuck pixels (λ_ps)")
-    rate_stuck: float = param(0.0, "defects/MP/year", "arrival rate of stuck pixels (λ_s)")
+    rate_partial: float = param(0.6659, "defects/MP/year", "arrival rate of partially stuck pixels (λ_ps)",
+                                free=True, bounds=(0.0, None))
+    rate_stuck: float = param(0.0, "defects/MP/year", "arrival rate of stuck pixels (λ_s)", free=True,
+                              bounds=(0.0, None))
     amp_partial: float = param(3.0, "DN", "maximum offset of a partially stuck pixel (a_ps); d = r·a_ps, r ~ U[0, 1]")
     amp_stuck: float = param(255.0, "DN", "maximum value of a stuck pixel (a_s); c = r·a_s")
     counting: str = param("poisson", "", "'poisson' (random counts) or 'deterministic' (the paper's (T − T0)·λ)")
+
+    def expected_arrivals(self, device: Device, times: Any, threshold: dict[int, float]) -> dict[int, np.ndarray]:
+        span = elapsed(device, times) * device.model.megapixels
+        return {PARTIAL: self.rate_partial * span * uniform_detect_fraction(self.amp_partial, threshold.get(PARTIAL, 0)),
+                STUCK: self.rate_stuck * span * uniform_detect_fraction(self.amp_stuck, threshold.get(STUCK, 0))}
+
+    def fit(self, evidence: Any) -> None:
+        """Amplitudes from the largest detected ones (the paper's a_ps = max d, made unbiased: ·(n+1)/n)."""
+        self.amp_partial = evidence.amplitude_max(PARTIAL, self.amp_partial)
+        self.amp_stuck = evidence.amplitude_max(STUCK, self.amp_stuck)
 
     def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:
         parts = []
@@ -100,6 +130,10 @@ class Offset(Effect):
     name = "offset"
     description = "partially stuck pixels add a constant offset to the light: y = i + d"
     stage = Stage.DARK
+    role = "base"
+
+    def patterns(self, device: Device) -> list[Pattern]:
+        return [Pattern("d", device.catalogue.amplitude, record_blocks(device.catalogue, device.model.shape, PARTIAL))]
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         sites = ctx.defects(PARTIAL)
@@ -117,6 +151,10 @@ class Stuck(Effect):
     name = "stuck"
     description = "stuck pixels output a constant value whatever the light: y = c"
     stage = Stage.STUCK
+    role = "base"
+
+    def patterns(self, device: Device) -> list[Pattern]:
+        return [Pattern("c", device.catalogue.amplitude, record_blocks(device.catalogue, device.model.shape, STUCK))]
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         sites = ctx.defects(STUCK)
@@ -134,8 +172,12 @@ class ReadNoise(Effect):
     name = "read_noise"
     description = "temporal noise independent of the signal (readout), Gaussian with constant σ"
     stage = Stage.NOISE
+    role = "base"
 
-    sigma: float = param(1.0, "DN", "standard deviation of the read noise")
+    sigma: float = param(1.0, "DN", "standard deviation of the read noise", free=True, bounds=(0.0, None))
+
+    def variance(self, mean: np.ndarray, ctx: FrameContext) -> np.ndarray | float:
+        return self.sigma**2
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         if self.sigma > 0:
@@ -153,10 +195,14 @@ class Prnu(Effect):
     description = "per-pixel gain differences (PRNU): y = i·(1 + k), k ~ N(0, σ_k)"
     stage = Stage.GAIN
 
-    sigma_k: float = param(0.01, "", "standard deviation of the relative gain k")
+    sigma_k: float = param(0.01, "", "standard deviation of the relative gain k", null=0.0)
 
     def realize(self, device: Device, rng: np.random.Generator) -> None:
         device.state[self.key] = (self.sigma_k * rng.standard_normal(device.model.shape, dtype=np.float32)).astype(np.float32)
+
+    def patterns(self, device: Device) -> list[Pattern]:
+        h, w = device.model.shape
+        return [Pattern("k", device.state[self.key].reshape(-1), np.arange(h * w).reshape(h, w), hyper="sigma_k")]
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         k = ctx.device.state[self.key]
@@ -174,13 +220,23 @@ class DarkCurrent(Effect):
     stage = Stage.DARK
     fields = ("exposure_s", "temperature_c")
 
-    rate_max: float = param(20.0, "DN/s", "maximum dark-current rate of a defect at T_ref (r ~ U[0, rate_max])")
+    rate_max: float = param(20.0, "DN/s", "maximum dark-current rate of a defect at T_ref (r ~ U[0, rate_max])",
+                            null=0.0)
     t_ref: float = param(25.0, "°C", "reference temperature")
-    t_double: float = param(7.0, "°C", "temperature increase that doubles the dark current (T_d)")
+    t_double: float = param(7.0, "°C", "temperature increase that doubles the dark current (T_d)", free=True,
+                            bounds=(1.0, 100.0))
 
     def realize(self, device: Device, rng: np.random.Generator) -> None:
         cat = device.catalogue
         cat.extra[f"{self.key}.rate"] = np.where(cat.kind == PARTIAL, rng.uniform(0, self.rate_max, len(cat)), 0.0)
+
+    def patterns(self, device: Device) -> list[Pattern]:
+        cat = device.catalogue
+        key = f"{self.key}.rate"
+        if key not in cat.extra:
+            cat.extra[key] = np.zeros(len(cat))
+        return [Pattern("rate", cat.extra[key], record_blocks(cat, device.model.shape, PARTIAL), hyper="rate_max",
+                        summary="max")]
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         sites = ctx.defects(PARTIAL)
@@ -203,7 +259,8 @@ class Gain(Effect):
     fields = ("iso",)
 
     iso_ref: float = param(100.0, "ISO", "ISO at which the gain is one")
-    exponent: float = param(1.0, "", "power of the ISO ratio (1 for a linear amplifier)")
+    exponent: float = param(1.0, "", "power of the ISO ratio (1 for a linear amplifier)", null=0.0, free=True,
+                            bounds=(-3.0, 3.0))
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         iso = ctx.require("iso", self.name)
@@ -220,7 +277,8 @@ class Nonlinearity(Effect):
     description = "global response curve: y = i − β·i²/full_scale (compression near saturation)"
     stage = Stage.RESPONSE
 
-    beta: float = param(0.05, "", "fraction of the signal lost at full scale")
+    beta: float = param(0.05, "", "fraction of the signal lost at full scale", null=0.0, free=True,
+                        bounds=(-1.0, 1.0))
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         signal -= np.float32(self.beta / ctx.full_scale) * signal * signal
@@ -236,13 +294,17 @@ class ShotNoise(Effect):
     description = "temporal variance grows with the mean signal: σ² = σ_read² + g·μ (photon shot noise)"
     stage = Stage.NOISE
 
-    g: float = param(0.5, "DN", "conversion gain: variance added per DN of mean signal")
+    g: float = param(0.5, "DN", "conversion gain: variance added per DN of mean signal", null=0.0, free=True,
+                     bounds=(0.0, None))
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         if self.g > 0:
             sd = np.sqrt(np.float32(self.g) * np.maximum(signal, 0.0))
             signal += sd * rng.standard_normal(signal.shape, dtype=np.float32)
         return signal
+
+    def variance(self, mean: np.ndarray, ctx: FrameContext) -> np.ndarray | float:
+        return self.g * np.maximum(mean, 0.0)
 
 
 @register_effect
@@ -255,10 +317,58 @@ class Clusters(Effect):
     stage = Stage.ARRIVAL
     fields = ("captured",)
 
-    rate: float = param(2.0, "clusters/MP/year", "arrival rate of clusters")
-    mean_size: float = param(4.0, "defects", "mean number of defects per cluster (Poisson)")
-    spread: float = param(3.0, "px", "standard deviation of a defect's offset from its cluster centre")
+    self_fitted = ("rate", "mean_size", "spread", "amplitude")
+
+    rate: float = param(2.0, "clusters/MP/year", "arrival rate of clusters", null=0.0, free=True, bounds=(0.0, None))
+    mean_size: float = param(4.0, "defects", "mean number of defects per cluster (Poisson)", free=True,
+                             bounds=(0.0, None))
+    spread: float = param(3.0, "px", "standard deviation of a defect's offset from its cluster centre", free=True,
+                          bounds=(0.1, None))
     amplitude: float = param(3.0, "DN", "maximum offset of a clustered partially stuck pixel")
+
+    def inside_fraction(self, shape: tuple[int, int]) -> float:
+        """Expected fraction of offspring landing on the sensor (Gaussian spill-over at the four edges)."""
+        h, w = shape
+        edge = self.spread / np.sqrt(2 * np.pi)
+        return float(max(0.0, 1 - edge / w * 2) * max(0.0, 1 - edge / h * 2))
+
+    def expected_arrivals(self, device: Device, times: Any, threshold: dict[int, float]) -> dict[int, np.ndarray]:
+        n = (self.rate * device.model.megapixels * elapsed(device, times) * self.mean_size
+             * self.inside_fraction(device.model.shape) * uniform_detect_fraction(self.amplitude, threshold.get(PARTIAL, 0)))
+        return {PARTIAL: n, STUCK: np.zeros_like(n)}
+
+    def fit(self, evidence: Any) -> None:
+        """Thomas-process parameters by minimum contrast on Ripley's K of the detected sites.
+
+        For uniform arrivals plus Thomas clusters, K(r) = πr² + A·(1 − exp(−r²/4σ²)) with
+        A = f·m/λ (f: clustered fraction, m: mean detected cluster size, λ: site intensity).
+        K fixes f·m, and so does the counts' dispersion, so ``mean_size`` keeps its value unless
+        f would exceed one.  The cluster rate then follows from f and the observed arrival rate.
+        """
+        self.amplitude = evidence.amplitude_max(PARTIAL, self.amplitude)
+        excess, sigma = evidence.cluster_excess()
+        p_detect = evidence.detect_fraction(PARTIAL, self.amplitude)
+        if excess <= 0 or p_detect <= 0:
+            self.rate = 0.0
+            return
+        self.spread = float(sigma)
+        f_m = excess * evidence.site_intensity()
+        size = self.mean_size * p_detect
+        if f_m > size:
+            self.mean_size = f_m / p_detect
+            size = f_m
+        fraction = min(1.0, f_m / size)
+        per_mp_year = evidence.arrival_rate(PARTIAL)
+        self.rate = float(fraction * per_mp_year / (self.mean_size * p_detect * self.inside_fraction(evidence.shape)))
+
+    def probe(self, evidence: Any) -> "Clusters":
+        """Clusters of the default size and spread carrying a third of the observed arrivals."""
+        from dataclasses import replace
+
+        amp = evidence.amplitude_max(PARTIAL, self.amplitude)
+        p_detect = max(evidence.detect_fraction(PARTIAL, amp), 1e-3)
+        rate = evidence.arrival_rate(PARTIAL) / 3 / (self.mean_size * p_detect)
+        return replace(self, rate=rate, amplitude=amp)
 
     def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:
         h, w = device.model.shape
@@ -283,9 +393,26 @@ class AcceleratingGrowth(Effect):
     stage = Stage.ARRIVAL
     fields = ("captured",)
 
-    theta: float = param(0.5, "defects/MP/year^β", "scale of the cumulative intensity")
-    beta: float = param(2.0, "", "shape: 1 is constant rate, > 1 accelerating, < 1 decelerating")
+    self_fitted = ("amplitude",)
+
+    theta: float = param(0.5, "defects/MP/year^β", "scale of the cumulative intensity", null=0.0, free=True,
+                         bounds=(0.0, None))
+    beta: float = param(2.0, "", "shape: 1 is constant rate, > 1 accelerating, < 1 decelerating", free=True,
+                        bounds=(0.2, 8.0))
     amplitude: float = param(3.0, "DN", "maximum offset of a partially stuck pixel from this process")
+
+    def expected_arrivals(self, device: Device, times: Any, threshold: dict[int, float]) -> dict[int, np.ndarray]:
+        n = (self.theta * device.model.megapixels * elapsed(device, times) ** self.beta
+             * uniform_detect_fraction(self.amplitude, threshold.get(PARTIAL, 0)))
+        return {PARTIAL: n, STUCK: np.zeros_like(n)}
+
+    def fit(self, evidence: Any) -> None:
+        self.amplitude = evidence.amplitude_max(PARTIAL, self.amplitude)
+
+    def probe(self, evidence: Any) -> "AcceleratingGrowth":
+        from dataclasses import replace
+
+        return replace(self, amplitude=evidence.amplitude_max(PARTIAL, self.amplitude))
 
     def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:
         t0 = device.model.t0
@@ -304,4 +431,5 @@ def describe_effects() -> list[dict[str, Any]]:
     from .model import EFFECTS
 
     return [{"name": cls.name, "description": cls.description, "stage": cls.stage.name.lower(),
-             "fields": list(cls.fields), "params": cls.parameter_info()} for cls in EFFECTS.values()]
+             "role": cls.role, "fields": list(cls.fields), "params": cls.parameter_info()}
+            for cls in EFFECTS.values()]

@@ -28,12 +28,32 @@ never removed; a site keeps its first partially stuck record, and a stuck
 record (which overrides from its onset on) is kept only if it is the site's
 first stuck record.
 
-An effect is a dataclass whose fields are its parameters (documented with
-``field(metadata={"unit": ..., "doc": ...})``).  It declares ``name``,
-``description``, ``stage`` and the manifest ``fields`` it needs, and
-implements ``realize`` (device state) and/or ``apply`` (per frame).  The
-model-checking code adds ``fit`` and ``signature``; the base class leaves
-room for them.
+An effect is a dataclass whose fields are its parameters (declared with
+:func:`param`: unit, meaning, and for model checking the *null* value at
+which the effect does nothing, whether the parameter is fitted, and its
+bounds).  It declares ``name``, ``description``, ``stage`` and the manifest
+``fields`` it needs, and implements ``realize`` (device state) and/or
+``apply`` (per frame).
+
+Model checking (:mod:`forensics.check`) uses the same objects.  An effect
+tells it
+
+* which of its parameters are fitted (``param(..., free=True)``) and their null
+  values (``param(..., null=0.0)``);
+* its fixed patterns (:meth:`Effect.patterns`): per-pixel or per-block values
+  kept in the device (a PRNU map, defect amplitudes, column offsets), which the
+  checker fits block by block;
+* for ``NOISE`` effects, the temporal variance they add (:meth:`Effect.variance`);
+* for ``ARRIVAL`` effects, the expected number of detectable defects against
+  time (:meth:`Effect.expected_arrivals`, Monte Carlo by default);
+* optionally a bespoke estimator (:meth:`Effect.fit`) and signature
+  (:meth:`Effect.signature`); the defaults are generic (Gauss–Newton through
+  ``apply``; finite differences of the prediction away from the null values).
+
+Conventions that make the generic machinery work: ``apply`` is deterministic
+except at the ``NOISE`` stage; fixed patterns are stored as *deviations* so
+that an all-zero pattern is the typical pixel (the checker evaluates the
+chain of a typical pixel with every state array zeroed and no defects).
 """
 from __future__ import annotations
 
@@ -283,16 +303,159 @@ class Effect:
         for f in dataclasses.fields(cls):
             default = f.default if f.default is not dataclasses.MISSING else None
             out.append({"name": f.name, "default": default, "unit": f.metadata.get("unit", ""),
-                        "doc": f.metadata.get("doc", "")})
+                        "doc": f.metadata.get("doc", ""), "null": f.metadata.get("null"),
+                        "free": bool(f.metadata.get("free", False))})
         return out
 
     def to_dict(self) -> dict[str, Any]:
         return {"effect": self.key, "params": self.params()}
 
+    # ------------------------------------------------------------------ model checking interface
+    #: ``"base"`` for the effects of the base model (growth, offset, stuck, read noise);
+    #: ``"candidate"`` for effects the diagnosis may propose.
+    role: ClassVar[str] = "candidate"
+    #: Parameters that :meth:`fit` estimates itself (the generic fit leaves them alone).
+    self_fitted: ClassVar[tuple[str, ...]] = ()
 
-def param(default: Any, unit: str = "", doc: str = "") -> Any:
-    """A dataclass field for an effect parameter, with its unit and meaning."""
-    return field(default=default, metadata={"unit": unit, "doc": doc})
+    @classmethod
+    def _meta(cls) -> dict[str, dict[str, Any]]:
+        return {f.name: dict(f.metadata) for f in dataclasses.fields(cls)}
+
+    @classmethod
+    def free_params(cls) -> list[str]:
+        """Names of the parameters the generic fit estimates (``param(..., free=True)``, not self-fitted)."""
+        return [n for n, m in cls._meta().items() if m.get("free") and n not in cls.self_fitted]
+
+    @classmethod
+    def null_values(cls) -> dict[str, Any]:
+        """Parameter values at which the effect changes nothing (``param(..., null=...)``)."""
+        return {n: m["null"] for n, m in cls._meta().items() if m.get("null") is not None}
+
+    @classmethod
+    def n_params(cls) -> int:
+        """Number of parameters adding the effect costs (for BIC): fitted or null-valued ones."""
+        return max(1, sum(1 for m in cls._meta().values() if m.get("free") or m.get("null") is not None))
+
+    @classmethod
+    def bounds(cls, name: str) -> tuple[float, float]:
+        lo, hi = cls._meta()[name].get("bounds", (None, None))
+        return (-np.inf if lo is None else float(lo), np.inf if hi is None else float(hi))
+
+    def nulled(self) -> "Effect":
+        """A copy with every null-valued parameter at its null value (the effect then does nothing)."""
+        return dataclasses.replace(self, **self.null_values())
+
+    def patterns(self, device: "Device") -> list["Pattern"]:
+        """The effect's fixed patterns in ``device`` (views the checker may fit in place). Default: none."""
+        return []
+
+    def variance(self, mean: np.ndarray, ctx: FrameContext) -> np.ndarray | float:
+        """Temporal variance this effect adds to a pixel of mean output ``mean`` (``NOISE`` effects). Default 0."""
+        return 0.0
+
+    def expected_arrivals(self, device: "Device", times: Sequence[float],
+                          threshold: dict[int, float]) -> dict[int, np.ndarray]:
+        """Expected cumulative number of defect records per kind present at each time whose amplitude exceeds
+        ``threshold[kind]`` (``ARRIVAL`` effects).
+
+        The default averages :meth:`arrivals` over Monte-Carlo draws (fixed seed), so a user's arrival
+        process needs nothing more; built-in effects override it with the closed form.
+        """
+        times = np.asarray(times, float)
+        out = {PARTIAL: np.zeros(len(times)), STUCK: np.zeros(len(times))}
+        if self.stage != Stage.ARRIVAL:
+            return out
+        rng = np.random.default_rng(20240601)
+        draws = 64
+        for _ in range(draws):
+            cat = self.arrivals(device, rng)
+            if cat is None or not len(cat):
+                continue
+            for kind in out:
+                sel = (cat.kind == kind) & (cat.amplitude > threshold.get(kind, -np.inf))
+                out[kind] += np.sum(cat.onset[sel][:, None] <= times[None, :], axis=0)
+        return {k: v / draws for k, v in out.items()}
+
+    def fit(self, evidence: Any) -> None:
+        """Bespoke estimation of :attr:`self_fitted` parameters from the checker's evidence.
+
+        Called before the generic joint fit of the effect's channel, once per fitting cycle.
+        Default: nothing (the generic fit estimates the ``free`` parameters and the patterns).
+        """
+
+    def signature(self, evidence: Any) -> list[Any]:
+        """How the predicted statistics change when this effect leaves its null values.
+
+        Default: the checker's generic finite-difference signature (through :meth:`apply`,
+        :meth:`variance` or :meth:`expected_arrivals`, by stage).
+        """
+        return evidence.signature(self)
+
+    def probe(self, evidence: Any) -> "Effect":
+        """The effect at a moderate strength, used where a signature must be simulated (arrival
+        placement).  Default: the effect as it is."""
+        return self
+
+
+@dataclass
+class Pattern:
+    """A fixed pattern of an effect: one value per block of pixels, stored in the device.
+
+    Attributes
+    ----------
+    name
+        Short name (``k``, ``d``, ``rate``…).
+    values
+        1-D array *view* into the device's state or catalogue; the checker fits it in place.
+    blocks
+        ``(H, W)`` integer map: index into ``values`` for each pixel, −1 where the pattern does not act.
+    hyper
+        The effect parameter that summarises the pattern (e.g. ``sigma_k``), set after fitting.
+    summary
+        How ``hyper`` is computed from the fitted values: ``"rms"``, ``"max"`` or ``"mean"``.
+    """
+
+    name: str
+    values: np.ndarray
+    blocks: np.ndarray
+    hyper: str | None = None
+    summary: str = "rms"
+
+    @property
+    def pixel_local(self) -> bool:
+        """True when every block is a single pixel (then the checker solves pixel by pixel)."""
+        used = self.blocks[self.blocks >= 0]
+        return bool(used.size == 0 or np.bincount(used).max() <= 1)
+
+
+def record_blocks(catalogue: DefectCatalogue, shape: tuple[int, int], kind: int) -> np.ndarray:
+    """``(H, W)`` map of the index of each site's record of ``kind`` (−1 elsewhere)."""
+    blocks = np.full(shape, -1, np.int64)
+    idx = np.flatnonzero(catalogue.kind == kind)
+    if idx.size:
+        blocks[catalogue.y[idx], catalogue.x[idx]] = idx
+    return blocks
+
+
+def param(default: Any, unit: str = "", doc: str = "", *, null: Any = None, free: bool = False,
+          bounds: tuple[float | None, float | None] = (None, None)) -> Any:
+    """A dataclass field for an effect parameter.
+
+    Parameters
+    ----------
+    default
+        Value used when the effect is created without this parameter.
+    unit, doc
+        Unit and one-line meaning (shown by ``forensics model effects``).
+    null
+        Value at which the effect changes nothing (used by the diagnosis); None if there is none.
+    free
+        Whether model checking fits this parameter.
+    bounds
+        Admissible range for the fit.
+    """
+    return field(default=default, metadata={"unit": unit, "doc": doc, "null": null, "free": free,
+                                            "bounds": bounds})
 
 
 EFFECTS: dict[str, type[Effect]] = {}
@@ -443,6 +606,30 @@ class Device:
     def expose(self, scene: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         """An image: the signal clipped to ``[0, full_scale]`` and rounded to the model's dtype."""
         return quantize(self.signal(scene, ctx, rng), self.model.full_scale, self.model.dtype)
+
+    def mean_signal(self, light: np.ndarray, ctx: FrameContext) -> np.ndarray:
+        """The expected signal (no temporal noise, no clipping) for incident ``light``, in float64.
+
+        Runs every effect except the ``ARRIVAL`` and ``NOISE`` stages; model checking uses it as the
+        prediction of a pixel's mean output.
+        """
+        signal = np.array(light, dtype=np.float64, copy=True)
+        rng = np.random.default_rng(0)
+        for effect in self.model.effects:
+            if effect.stage not in (Stage.ARRIVAL, Stage.NOISE):
+                signal = effect.apply(signal, ctx, rng)
+        return signal
+
+    def copy(self, model: "SensorModel | None" = None) -> "Device":
+        """A deep copy (catalogue arrays and state arrays copied), optionally with another model."""
+        cat = self.catalogue.select(np.arange(len(self.catalogue)))
+        state = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self.state.items()}
+        return Device(model=model or self.model, times=self.times, catalogue=cat, state=state)
+
+    def typical(self) -> "Device":
+        """The typical pixel's device: no defects and every fixed-pattern array zeroed."""
+        state = {k: (np.zeros_like(v) if isinstance(v, np.ndarray) else v) for k, v in self.state.items()}
+        return Device(model=self.model, times=self.times, catalogue=DefectCatalogue.empty(), state=state)
 
 
 def quantize(signal: np.ndarray, full_scale: float, dtype: np.dtype) -> np.ndarray:
