@@ -1,0 +1,608 @@
+"""Matching noise residuals against camera fingerprints: NCC and PCE.
+
+The detector of the reference design asks whether a query image ``I`` carries the
+fingerprint ``K``: its residual ``W`` (σ = 2, with zero-mean and DFT Wiener steps)
+is correlated with the expected signal ``I·K``.
+
+**NCC** (:func:`ncc`) is the normalised correlation of the two arrays at zero shift.
+
+**PCE** (:func:`pce`, peak-to-correlation energy) is the squared correlation peak
+over the mean squared circular cross-correlation outside an ``exclusion × exclusion``
+window (11×11) around the peak.  Under the null hypothesis (other camera) the
+normalised peak ``peak/√energy`` is about standard normal, so ``PCE ≈ χ²₁`` and
+``PCE ≥ 60`` is the customary decision threshold.  The value is *signed*
+(``sign(peak)·peak²/energy``): an anti-correlation is no match.
+
+The peak is looked for **at zero shift only** by default.  Searching every circular
+shift (what the public NumPy port does) takes the maximum of ``H·W`` null values and
+lifts impostor PCE to 20–40; pass ``shift_range`` only when the query may be a
+shifted crop of the frame.  The false-alarm probability reported accounts for the
+number of shifts searched: ``p_FA = 1 − (1 − Q(peak/√energy))^n_shifts``.
+
+Shift convention: ``shift = (dy, dx)`` means ``residual ≈ np.roll(reference, (dy, dx),
+axis=(0, 1))``; shifts are reported in ``(−H/2, H/2] × (−W/2, W/2]``.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.fft
+from scipy import special
+
+from .errors import InputError, UsageError
+from .fingerprint import Fingerprint, Region, parse_region, region_residual_and_intensity
+from .progress import Progress, no_progress
+from .residual import default_workers
+
+__all__ = [
+    "QUERY_SIGMA",
+    "PCE_THRESHOLD",
+    "PceResult",
+    "MatchScore",
+    "Query",
+    "ncc",
+    "pce",
+    "prepare_query",
+    "orientations",
+    "score_pair",
+    "score_query",
+    "score_matrix",
+]
+
+#: Residual noise level of queries in the reference design (8-bit scale).
+QUERY_SIGMA = 2.0
+#: Customary PCE decision threshold.
+PCE_THRESHOLD = 60.0
+METRICS = ("pce", "ncc")
+
+
+@dataclass(frozen=True)
+class PceResult:
+    """Outcome of a PCE test.
+
+    Attributes
+    ----------
+    pce : float
+        Signed peak-to-correlation energy ``sign(peak)·peak²/energy``.
+    shift : (int, int)
+        Position of the peak, ``(dy, dx)`` (``(0, 0)`` without a search).
+    sign : int
+        Sign of the peak (+1, −1, or 0 for a degenerate input).
+    ncc : float
+        Normalised correlation at the peak (``peak / (‖a‖·‖b‖)``).
+    p_fa : float
+        Probability that an unrelated pair gives a peak at least this high over the
+        searched shifts (Gaussian tail of ``peak/√energy``, times the search).
+    log10_p_fa : float
+        ``log10(p_fa)``, finite even where ``p_fa`` underflows to 0 (for ranking).
+    n_shifts : int
+        Number of shifts searched.
+    """
+
+    pce: float
+    shift: tuple[int, int]
+    sign: int
+    ncc: float
+    p_fa: float
+    log10_p_fa: float
+    n_shifts: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "pce": self.pce,
+            "shift": list(self.shift),
+            "sign": self.sign,
+            "ncc": self.ncc,
+            "p_fa": self.p_fa,
+            "log10_p_fa": self.log10_p_fa,
+            "n_shifts": self.n_shifts,
+        }
+
+
+@dataclass(frozen=True)
+class MatchScore:
+    """Score of one query against one fingerprint.
+
+    ``value`` is the PCE (signed) or the NCC, per ``metric``; ``rotation`` the number
+    of 90° counter-clockwise turns (``np.rot90``) applied to the query image.
+    """
+
+    metric: str
+    value: float
+    rotation: int
+    ncc: float
+    pce: PceResult | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "metric": self.metric,
+            "value": self.value,
+            "rotation": self.rotation,
+            "ncc": self.ncc,
+            "pce": self.pce.to_dict() if self.pce is not None else None,
+        }
+
+
+@dataclass(frozen=True)
+class Query:
+    """A query prepared for matching: residual ``W`` and intensity ``I`` over a region.
+
+    ``rotation`` records the ``np.rot90`` turns applied to the image before extraction.
+    """
+
+    residual: np.ndarray
+    intensity: np.ndarray
+    region: str
+    rotation: int = 0
+    source: str | None = None
+
+
+# ----------------------------------------------------------------------------- correlation measures
+
+
+def _check_pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    a = np.asarray(a)
+    b = np.asarray(b)
+    if a.ndim != 2 or a.shape != b.shape:
+        raise InputError(f"{what}: need two 2-D arrays of the same shape, got {a.shape} and {b.shape}")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise InputError(f"{what}: arrays contain NaN or infinite values")
+    return a, b
+
+
+def ncc(a: np.ndarray, b: np.ndarray) -> float:
+    """Normalised cross-correlation at zero shift, in [−1, 1] (0 if either array is constant).
+
+    ``Σ(a − ā)(b − b̄) / √(Σ(a − ā)² Σ(b − b̄)²)``; products in float32, sums
+    accumulated in float64.  Symmetric in ``a`` and ``b``.
+    """
+    a, b = _check_pair(a, b, "ncc")
+    a0 = _centred(a)
+    b0 = _centred(b)
+    den = math.sqrt(_sum_sq(a0) * _sum_sq(b0))
+    if den == 0.0:
+        return 0.0
+    num = float(np.multiply(a0, b0).sum(dtype=np.float64))
+    return float(np.clip(num / den, -1.0, 1.0))
+
+
+def _sum_sq(a: np.ndarray) -> float:
+    return float(np.square(a).sum(dtype=np.float64))
+
+
+def _centred(a: np.ndarray) -> np.ndarray:
+    """float32 copy of ``a`` minus its mean (the mean taken in float64)."""
+    out = np.array(a, dtype=np.float32, copy=True)
+    out -= np.float32(out.mean(dtype=np.float64))
+    return out
+
+
+def _shift_indices(r: int | None, n: int) -> np.ndarray:
+    if r is None or 2 * r + 1 >= n:
+        return np.arange(n)
+    return np.arange(-r, r + 1) % n
+
+
+def _parse_shift_range(shift_range: int | tuple[int, int] | None) -> tuple[int | None, int | None]:
+    if shift_range is None:
+        return None, None
+    if np.ndim(shift_range) == 0:
+        r = int(shift_range)  # type: ignore[arg-type]
+        ry = rx = r
+    else:
+        ry, rx = (int(v) for v in shift_range)  # type: ignore[union-attr]
+    if ry < 0 or rx < 0:
+        raise UsageError(f"shift_range={shift_range}: must be non-negative (0 = zero shift only)")
+    return ry, rx
+
+
+class _Spectrum:
+    """Real FFT of a zero-mean array, kept to correlate it with many references."""
+
+    def __init__(self, a: np.ndarray, workers: int) -> None:
+        a0 = _centred(a)
+        self.shape = a0.shape
+        self.norm = math.sqrt(_sum_sq(a0))
+        self.spec = scipy.fft.rfft2(a0, workers=workers)
+        self.workers = workers
+
+
+def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion: int) -> tuple[PceResult, float]:
+    """PCE of the spectrum's array against ``reference``, and the NCC at zero shift."""
+    h, w = sa.shape
+    if exclusion < 1 or exclusion % 2 == 0:
+        raise UsageError(f"exclusion={exclusion}: the window around the peak must be a positive odd size")
+    if h < 2 * exclusion or w < 2 * exclusion:
+        raise InputError(f"arrays of shape {sa.shape} are too small for PCE with a {exclusion}×{exclusion} exclusion window")
+    ry, rx = _parse_shift_range(shift_range)
+    b0 = _centred(reference)
+    norm_b = math.sqrt(_sum_sq(b0))
+    spec = scipy.fft.rfft2(b0, workers=sa.workers)
+    del b0
+    np.conjugate(spec, out=spec)
+    spec *= sa.spec
+    corr = scipy.fft.irfft2(spec, s=(h, w), workers=sa.workers)
+    del spec
+    rows = _shift_indices(ry, h)
+    cols = _shift_indices(rx, w)
+    n_shifts = rows.size * cols.size
+    if n_shifts == 1:
+        py, px = 0, 0
+    else:
+        sub = corr[np.ix_(rows, cols)]
+        iy, ix = np.unravel_index(int(np.argmax(sub)), sub.shape)
+        py, px = int(rows[iy]), int(cols[ix])
+    peak = float(corr[py, px])
+    half = exclusion // 2
+    wr = np.unique((py + np.arange(-half, half + 1)) % h)
+    wc = np.unique((px + np.arange(-half, half + 1)) % w)
+    energy_all = float(np.square(corr, dtype=np.float32).sum(dtype=np.float64))
+    energy_win = float(np.square(corr[np.ix_(wr, wc)].astype(np.float64)).sum())
+    n_out = h * w - wr.size * wc.size
+    energy = max(energy_all - energy_win, 0.0) / n_out
+    dy = py - h if py > h // 2 else py
+    dx = px - w if px > w // 2 else px
+    if energy <= 0.0 or sa.norm == 0.0 or norm_b == 0.0:
+        return PceResult(0.0, (dy, dx), 0, 0.0, 1.0, 0.0, n_shifts), 0.0
+    ncc0 = float(np.clip(corr[0, 0] / (sa.norm * norm_b), -1.0, 1.0))
+    sign = 1 if peak > 0 else (-1 if peak < 0 else 0)
+    value = sign * peak * peak / energy
+    z = peak / math.sqrt(energy)
+    p_fa, log10_p_fa = _false_alarm(z, n_shifts)
+    result = PceResult(
+        pce=float(value),
+        shift=(int(dy), int(dx)),
+        sign=sign,
+        ncc=float(np.clip(peak / (sa.norm * norm_b), -1.0, 1.0)),
+        p_fa=p_fa,
+        log10_p_fa=log10_p_fa,
+        n_shifts=int(n_shifts),
+    )
+    return result, ncc0
+
+
+def _false_alarm(z: float, n: int) -> tuple[float, float]:
+    """``1 − (1 − Q(z))^n`` and its log10, stable for tiny and for large tails."""
+    log_p = float(special.log_ndtr(-z))  # log Q(z)
+    p = math.exp(log_p)
+    if p > 1e-12:
+        log_keep = n * math.log1p(-p) if p < 1.0 else -math.inf
+        p_fa = -math.expm1(log_keep)
+        log10 = math.log10(p_fa) if p_fa > 0 else log_p / math.log(10) + math.log10(n)
+    else:  # (1 − p)^n = 1 − n·p + O((n·p)²)
+        log10 = (log_p + math.log(n)) / math.log(10)
+        p_fa = min(1.0, 10.0**log10) if log10 > -320 else 0.0
+    return float(min(1.0, p_fa)), float(min(0.0, log10))
+
+
+def pce(
+    residual: np.ndarray,
+    reference: np.ndarray,
+    shift_range: int | tuple[int, int] | None = 0,
+    exclusion: int = 11,
+    workers: int | None = None,
+) -> PceResult:
+    """Peak-to-correlation energy of the circular cross-correlation of two arrays.
+
+    Parameters
+    ----------
+    residual, reference : ndarray, (H, W)
+        E.g. a query's residual ``W`` and ``I·K``; both are made zero-mean.
+    shift_range : int, (int, int) or None
+        Largest |dy|, |dx| searched for the peak: 0 (default) = zero shift only;
+        None = every circular shift (the public port's behaviour: inflates
+        impostor PCE; for comparison or for crops at unknown positions).
+    exclusion : int
+        Odd size of the square around the peak left out of the energy (11).
+    workers : int, optional
+        FFT threads (default :func:`forensics.residual.default_workers`).
+
+    Returns
+    -------
+    PceResult
+    """
+    residual, reference = _check_pair(residual, reference, "pce")
+    sa = _Spectrum(residual, default_workers() if workers is None else workers)
+    return _pce_with(sa, reference, shift_range, exclusion)[0]
+
+
+# ----------------------------------------------------------------------------- queries
+
+
+def orientations(image_shape: Sequence[int], frame_shape: Sequence[int]) -> tuple[int, ...]:
+    """The ``np.rot90`` turns to try so that an image lies like the sensor's frame.
+
+    ``(0,)`` if the image already has the frame's (H, W); ``(1, 3)`` (both quarter
+    turns, the better one is kept) if it has (W, H), as portrait pictures written
+    rotated do.
+
+    Raises
+    ------
+    InputError
+        If the image has neither shape.
+    """
+    ih, iw = int(image_shape[0]), int(image_shape[1])
+    fh, fw = int(frame_shape[0]), int(frame_shape[1])
+    if (ih, iw) == (fh, fw):
+        return (0,)
+    if (ih, iw) == (fw, fh):
+        return (1, 3)
+    raise InputError(
+        f"image is {ih}×{iw} but the fingerprint's frames are {fh}×{fw}; "
+        "PRNU matching needs the full, unscaled frame (crops and resized images need a shift/scale search)"
+    )
+
+
+def prepare_query(
+    image: np.ndarray,
+    region: str | Region = "full",
+    *,
+    sigma: float = QUERY_SIGMA,
+    rotation: int = 0,
+    source: str | None = None,
+    white_level: float | None = None,
+    black_level: float | Sequence[float] = 0.0,
+    saturation_level: float | None = None,
+    saturation_dilate: int = 1,
+    rolloff: bool = True,
+    workers: int | None = None,
+) -> Query:
+    """Residual (σ = 2, zero-mean, DFT Wiener) and intensity of a query image over a region.
+
+    Parameters
+    ----------
+    image : ndarray, (H, W) or (H, W, 3)
+        Not modified.
+    region : str or Region
+        Must be the fingerprint's region.
+    sigma : float
+        Residual noise level, 8-bit scale.
+    rotation : int
+        ``np.rot90`` turns applied to the image first.
+    source : str, optional
+        Name kept in the result.
+    white_level, black_level, saturation_level, saturation_dilate, rolloff, workers
+        As :class:`forensics.fingerprint.FingerprintBuilder`.
+    """
+    region = parse_region(region)
+    image = np.asarray(image)
+    if rotation % 4:
+        image = np.ascontiguousarray(np.rot90(image, rotation % 4, axes=(0, 1)))
+    res, inten = region_residual_and_intensity(
+        image, region, sigma,
+        white_level=white_level, black_level=black_level, saturation_level=saturation_level,
+        saturation_dilate=saturation_dilate, rolloff=rolloff, postprocess=True, workers=workers,
+    )
+    return Query(residual=res, intensity=inten, region=region.spec, rotation=rotation % 4, source=source)
+
+
+def _check_metric(metric: str) -> str:
+    if metric not in METRICS:
+        raise UsageError(f"metric {metric!r}: choose one of {', '.join(METRICS)}")
+    return metric
+
+
+def _score(
+    fingerprint: Fingerprint,
+    residual: np.ndarray,
+    intensity: np.ndarray,
+    metric: str,
+    shift_range: Any,
+    exclusion: int,
+    rotation: int,
+    workers: int,
+    spectrum: _Spectrum | None = None,
+) -> MatchScore:
+    if residual.shape != fingerprint.K.shape or intensity.shape != fingerprint.K.shape:
+        raise InputError(
+            f"query of shape {residual.shape} does not match the fingerprint's {fingerprint.K.shape} "
+            f"(region {fingerprint.region}); prepare the query with the same region"
+        )
+    expected = intensity * fingerprint.K
+    if metric == "ncc":
+        corr = ncc(residual, expected)
+        return MatchScore("ncc", corr, rotation, corr, None)
+    sa = spectrum if spectrum is not None else _Spectrum(residual, workers)
+    result, corr = _pce_with(sa, expected, shift_range, exclusion)
+    return MatchScore("pce", result.pce, rotation, corr, result)
+
+
+def score_pair(
+    fingerprint: Fingerprint,
+    query: Query | tuple[np.ndarray, np.ndarray],
+    metric: str = "pce",
+    *,
+    shift_range: int | tuple[int, int] | None = 0,
+    exclusion: int = 11,
+    workers: int | None = None,
+) -> MatchScore:
+    """Score a prepared query (or a ``(residual, intensity)`` pair) against a fingerprint.
+
+    The detector correlates the query residual ``W`` with ``I·K``.
+    """
+    _check_metric(metric)
+    workers = default_workers() if workers is None else workers
+    if isinstance(query, Query):
+        if query.region != fingerprint.region:
+            raise InputError(f"query region {query.region} differs from the fingerprint's {fingerprint.region}")
+        res, inten, rot = query.residual, query.intensity, query.rotation
+    else:
+        res, inten = (np.asarray(v) for v in query)
+        rot = 0
+    return _score(fingerprint, res, inten, metric, shift_range, exclusion, rot, workers)
+
+
+def _rotations_for(rotations: str | int | Sequence[int], image_shape: Sequence[int], fp: Fingerprint) -> tuple[int, ...]:
+    if isinstance(rotations, str):
+        if rotations != "auto":
+            raise UsageError(f"rotations={rotations!r}: use 'auto', an int or a sequence of ints")
+        return orientations(image_shape, fp.frame_shape)
+    if np.ndim(rotations) == 0:
+        return (int(rotations) % 4,)  # type: ignore[arg-type]
+    return tuple(int(r) % 4 for r in rotations)  # type: ignore[union-attr]
+
+
+def score_query(
+    fingerprint: Fingerprint,
+    image: np.ndarray,
+    metric: str = "pce",
+    *,
+    sigma: float = QUERY_SIGMA,
+    shift_range: int | tuple[int, int] | None = 0,
+    exclusion: int = 11,
+    rotations: str | int | Sequence[int] = "auto",
+    workers: int | None = None,
+    **query_options: Any,
+) -> MatchScore:
+    """Score a query image against a fingerprint.
+
+    Parameters
+    ----------
+    fingerprint : Fingerprint
+    image : ndarray, (H, W) or (H, W, 3)
+        The full frame (not modified); the fingerprint's region is cut out of it.
+    metric : {'pce', 'ncc'}
+    sigma : float
+        Query residual noise level (2 in the reference).
+    shift_range, exclusion
+        See :func:`pce`.
+    rotations : 'auto', int or sequence of int
+        ``np.rot90`` turns to try; the best score is kept.  'auto' tries none for an
+        image shaped like the frames and both quarter turns for a transposed one
+        (:func:`orientations`).  Trying two orientations doubles ``n_shifts`` in
+        the false-alarm probability.
+    **query_options
+        Passed to :func:`prepare_query` (white_level, black_level, ...).
+    """
+    _check_metric(metric)
+    workers = default_workers() if workers is None else workers
+    region = parse_region(fingerprint.region)
+    best: MatchScore | None = None
+    rots = _rotations_for(rotations, np.shape(image), fingerprint)
+    for rot in rots:
+        q = prepare_query(image, region, sigma=sigma, rotation=rot, workers=workers, **query_options)
+        score = _score(fingerprint, q.residual, q.intensity, metric, shift_range, exclusion, rot, workers)
+        if best is None or score.value > best.value:
+            best = score
+    assert best is not None
+    return _account_rotations(best, len(rots))
+
+
+def _account_rotations(score: MatchScore, n_rot: int) -> MatchScore:
+    """Fold the number of orientations tried into the false-alarm probability."""
+    if score.pce is None or n_rot <= 1:
+        return score
+    p = score.pce
+    n = p.n_shifts * n_rot
+    z = math.copysign(math.sqrt(abs(p.pce)), p.pce)
+    p_fa, log10 = _false_alarm(z, n) if p.sign != 0 else (1.0, 0.0)
+    pce_result = PceResult(p.pce, p.shift, p.sign, p.ncc, p_fa, log10, n)
+    return MatchScore(score.metric, score.value, score.rotation, score.ncc, pce_result)
+
+
+class _PreparedImage:
+    """A query image whose region residuals and spectra are computed once, on demand."""
+
+    def __init__(self, image: np.ndarray, source: str | None, sigma: float, workers: int, options: dict[str, Any]):
+        self.image = image
+        self.source = source
+        self.sigma = sigma
+        self.workers = workers
+        self.options = options
+        self._cache: dict[tuple[str, int], tuple[Query, _Spectrum | None]] = {}
+
+    def get(self, region: str, rotation: int, need_spectrum: bool) -> tuple[Query, _Spectrum | None]:
+        key = (region, rotation)
+        q, s = self._cache.get(key, (None, None))
+        if q is None:
+            q = prepare_query(self.image, region, sigma=self.sigma, rotation=rotation, source=self.source,
+                              workers=self.workers, **self.options)
+        if need_spectrum and s is None:
+            s = _Spectrum(q.residual, self.workers)
+        self._cache[key] = (q, s)
+        return q, s
+
+
+def score_matrix(
+    fingerprints: Sequence[Fingerprint],
+    queries: Iterable[Any],
+    metric: str = "pce",
+    *,
+    sigma: float = QUERY_SIGMA,
+    shift_range: int | tuple[int, int] | None = 0,
+    exclusion: int = 11,
+    rotations: str | int | Sequence[int] = "auto",
+    progress: Progress = no_progress,
+    total: int | None = None,
+    details: bool = False,
+    workers: int | None = None,
+    **query_options: Any,
+) -> np.ndarray | tuple[np.ndarray, list[list[MatchScore]]]:
+    """Score every query against every fingerprint.
+
+    Parameters
+    ----------
+    fingerprints : sequence of Fingerprint
+        May differ in region; each query is prepared once per (region, rotation).
+    queries : iterable
+        Each item is an image array, a :class:`Query`, a ``(residual, intensity)``
+        pair already cut to the fingerprints' region, or an object with ``load()``
+        (and ``path``), e.g. :class:`forensics.dataset.Frame`.  They are consumed one
+        at a time, so only one query's data is in memory.
+    metric, sigma, shift_range, exclusion, rotations, **query_options
+        As :func:`score_query`.
+    progress : callable
+        Progress wrapper over the queries.
+    total : int, optional
+        Number of queries, for the progress bar.
+    details : bool
+        Also return the :class:`MatchScore` of every pair.
+
+    Returns
+    -------
+    scores : ndarray, float64, (n_fingerprints, n_queries)
+    details : list (per fingerprint) of lists of MatchScore, if ``details``
+    """
+    _check_metric(metric)
+    fingerprints = list(fingerprints)
+    if not fingerprints:
+        raise UsageError("no fingerprints to score against")
+    workers = default_workers() if workers is None else workers
+    if total is None and hasattr(queries, "__len__"):
+        total = len(queries)  # type: ignore[arg-type]
+    columns: list[list[MatchScore]] = []
+    for item in progress(queries, total=total, desc="matching"):
+        column: list[MatchScore] = []
+        if isinstance(item, Query) or (isinstance(item, tuple) and len(item) == 2):
+            for fp in fingerprints:
+                column.append(score_pair(fp, item, metric, shift_range=shift_range, exclusion=exclusion,
+                                         workers=workers))
+        else:
+            source = None
+            if hasattr(item, "load"):
+                source = str(getattr(item, "path", "")) or None
+                item = item.load()
+            prepared = _PreparedImage(np.asarray(item), source, sigma, workers, query_options)
+            for fp in fingerprints:
+                rots = _rotations_for(rotations, prepared.image.shape, fp)
+                best: MatchScore | None = None
+                for rot in rots:
+                    q, spec = prepared.get(fp.region, rot, metric == "pce")
+                    s = _score(fp, q.residual, q.intensity, metric, shift_range, exclusion, rot, workers, spec)
+                    if best is None or s.value > best.value:
+                        best = s
+                assert best is not None
+                column.append(_account_rotations(best, len(rots)))
+            del prepared
+        columns.append(column)
+    scores = np.array([[columns[j][i].value for j in range(len(columns))] for i in range(len(fingerprints))],
+                      dtype=np.float64).reshape(len(fingerprints), len(columns))
+    if details:
+        return scores, [[columns[j][i] for j in range(len(columns))] for i in range(len(fingerprints))]
+    return scores
