@@ -1,0 +1,91 @@
+"""The full validation sweep (≥ 400 trials each) whose table goes into benchmarks/RESULTS_defects.md.
+
+    .venv/bin/python benchmarks/sweep_validate.py --trials 400 --seed 2024 --jobs 2
+
+Runs exactly the trials of ``forensics validate defects`` and ``forensics
+validate dating`` (same per-trial seeds), split over worker processes, and
+prints the result tables as Markdown.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from forensics import validate as V  # noqa: E402
+
+
+def _defects(args):
+    settings, seed, indices = args
+    pool = V.scene_pool(settings, np.random.default_rng([seed, 1]))
+    return [V.defects_trial(settings, pool, np.random.default_rng([seed, 2, i])) for i in indices]
+
+
+def _dating(args):
+    settings, seed, indices = args
+    pool = V.scene_pool(settings, np.random.default_rng([seed, 3]))
+    sets, images = [], []
+    for i in indices:
+        rng = np.random.default_rng([seed, 4, i])
+        sets.append(V.set_dating_trial(settings, pool, rng, within=rng.random() < 0.25))
+        images.append(V.image_dating_trial(settings, pool, np.random.default_rng([seed, 5, i])))
+    return sets, images
+
+
+def markdown(result: V.ValidationResult) -> str:
+    lines = ["| quantity | trials | value | 95 % interval | acceptance | |", "|---|---:|---:|---|---|---|"]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in result.table()]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--trials", type=int, default=400)
+    ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--sensor", default="F")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--scenes", default="smooth")
+    ap.add_argument("--what", choices=["defects", "dating", "both"], default="both")
+    args = ap.parse_args()
+    settings = V.ValidationSettings(sensor=args.sensor, scenes=args.scenes)
+    chunks = [list(range(j, args.trials, args.jobs)) for j in range(args.jobs)]
+    with ProcessPoolExecutor(args.jobs) as ex:
+        defects = dating = None
+        if args.what in ("defects", "both"):
+            t = time.perf_counter()
+            parts = list(ex.map(_defects, [(settings, args.seed, c) for c in chunks]))
+            records = [r for p in parts for r in p]
+            defects = V.summarise_defects(settings, records, args.seed)
+            t_def = time.perf_counter() - t
+        if args.what in ("dating", "both"):
+            t = time.perf_counter()
+            parts = list(ex.map(_dating, [(settings, args.seed, c) for c in chunks]))
+            dating = V.summarise_dating(settings, [r for p in parts for r in p[0]], [r for p in parts for r in p[1]],
+                                        args.seed)
+            t_dat = time.perf_counter() - t
+    s = settings
+    print(f"settings: sensor {s.sensor}, {s.bit_depth}-bit {s.shape[1]}x{s.shape[0]}, read noise {s.read_noise:g} DN, "
+          f"K = {s.images} per epoch (single-image references: K = {s.dating_images} yearly over {s.dating_years} "
+          f"years), scenes '{s.scenes}', rates x{s.rate_scale():.4g}, q = {s.q}, tau = {s.sigma:g} sigma, "
+          f"seed {args.seed}, {args.jobs} processes")
+    if defects:
+        print(f"\n### validate defects ({args.trials} trials, {t_def:.0f} s)\n")
+        print(markdown(defects))
+        curve = defects.curves["recall_vs_amplitude_sigma"]
+        print("\nrecall by amplitude (units of sigma of d-hat): " +
+              ", ".join(f"{c[0]:.1f}: {c[2]:.3f} (n={c[1]})" for c in curve if c[2] is not None))
+    if dating:
+        print(f"\n### validate dating ({args.trials} trials, {t_dat:.0f} s)\n")
+        print(markdown(dating))
+        print(f"\nsingle-image |interval error| histogram: {dating.curves['interval_error_histogram']}")
+    print(f"\nall acceptance figures met: {all(r.passed for r in (defects, dating) if r)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,961 @@
+"""Defect detection from ordinary images (reference paper, section 3.2, eq. 11–15).
+
+One streaming pass over K images of one device (:func:`forensics.stack.stack_stats`)
+gives the per-pixel mean ȳ, minimum, maximum and variance.  Then
+
+* **stuck** pixels (eq. 11): the same value in all K images, ``max − min ≤ tolerance``
+  (tolerance 0 by default; raise it for compressed or noisy data), while the
+  neighbourhood does vary (a constant patch — clipping, a black border — is not
+  a defect);
+* **partially stuck** pixels (eq. 15): d̂ = ȳ − median_q(ȳ) > τ, where τ comes
+  from a robust normal fit of d̂ over the analysed region (median and
+  1.4826·MAD; ``center + sigma·scale`` with sigma = 5 by default) or is given.
+
+The region analysed is a mask (always without the q//2 border, where the
+mirrored median is biased by any gradient): by default the centre of the frame (where the
+subject usually is, so where the mean image is textured) is left out, as in the
+paper's fig. 2; alternatively a user's mask image, every pixel, or an automatic
+mask that leaves out pixels whose local texture (local mean |d̂|) is high.
+Raw CFA mosaics are analysed per colour channel (each 2×2 sub-lattice has its
+own median, fit and threshold); colour images are averaged over channels.
+
+The q×q median is exact: :func:`median_filter` evaluates a comparator network
+(sorted columns shared between rows, merged sorted column groups shared between
+columns, pruned to the one rank needed) with NumPy on cache-sized tiles — about
+ten times faster than :func:`scipy.ndimage.median_filter` at q = 9, identical
+output (scipy's ``mode='reflect'`` boundary).
+"""
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import ndimage, stats
+
+from .errors import InputError, UsageError
+from .model import KIND_NAMES, PARTIAL, STUCK
+from .progress import Progress, no_progress
+from .stack import StackAccumulator, StackStats
+
+DEFAULT_Q = 9
+DEFAULT_SIGMA = 5.0
+DEFAULT_CENTRE_FRACTION = 0.5
+MIN_IMAGES = 10
+MAD_TO_SIGMA = 1.4826
+#: Above this fraction of constant pixels the stuck test is meaningless (static scenes) and is not applied.
+MAX_CONSTANT_FRACTION = 0.01
+#: Largest kernel evaluated by the comparator network; larger ones use scipy.
+NETWORK_MAX_Q = 11
+
+
+# =========================================================================== exact median filter
+class _Net:
+    """A comparator network over shifted copies of one 2-D input (hash-consed DAG of min/max nodes).
+
+    A reference ``(node, dy, dx)`` means the node's value at ``(y + dy, x + dx)``;
+    every node is a function of the position, so a node used at several shifts
+    is computed once and shared by neighbouring outputs.
+    """
+
+    def __init__(self) -> None:
+        self.nodes: list[tuple[str, Any, Any]] = []
+        self._index: dict[tuple[str, Any, Any], int] = {}
+        self.input = self._node(("in", None, None))
+
+    def _node(self, key: tuple[str, Any, Any]) -> int:
+        if key not in self._index:
+            self.nodes.append(key)
+            self._index[key] = len(self.nodes) - 1
+        return self._index[key]
+
+    def op(self, name: str, a: tuple[int, int, int], b: tuple[int, int, int]) -> tuple[int, int, int]:
+        if a == b:
+            return a
+        a, b = sorted((a, b))
+        return (self._node((name, a, b)), 0, 0)
+
+    def cmp(self, a, b):
+        return self.op("min", a, b), self.op("max", a, b)
+
+    def merge(self, a: list, b: list) -> list:
+        """Batcher's odd–even merge of two sorted lists of any lengths."""
+        if not a:
+            return list(b)
+        if not b:
+            return list(a)
+        if len(a) == 1 and len(b) == 1:
+            return list(self.cmp(a[0], b[0]))
+        v = self.merge(a[0::2], b[0::2])
+        w = self.merge(a[1::2], b[1::2])
+        out, rest = [v[0]], v[1:]
+        for i in range(max(len(w), len(rest))):
+            if i < len(w) and i < len(rest):
+                out.extend(self.cmp(w[i], rest[i]))
+            else:
+                out.append(w[i] if i < len(w) else rest[i])
+        return out
+
+    def kth_of_union(self, a: list, b: list, k: int):
+        """The k-th smallest (0-based) of two sorted lists: min over splits i of max(a[k−i], b[i−1])."""
+        terms = []
+        for i in range(max(0, k + 1 - len(a)), min(len(b), k + 1) + 1):
+            if i == 0:
+                terms.append(a[k])
+            elif k - i < 0:
+                terms.append(b[i - 1])
+            else:
+                terms.append(self.op("max", a[k - i], b[i - 1]))
+        out = terms[0]
+        for t in terms[1:]:
+            out = self.op("min", out, t)
+        return out
+
+    def live(self, out) -> list[int]:
+        seen: set[int] = set()
+        stack = [out[0]]
+        while stack:
+            n = stack.pop()
+            if n in seen:
+                continue
+            seen.add(n)
+            name, a, b = self.nodes[n]
+            if name != "in":
+                stack += [a[0], b[0]]
+        return sorted(seen)
+
+
+def _shift(refs: list, dy: int, dx: int) -> list:
+    return [(n, y + dy, x + dx) for n, y, x in refs]
+
+
+def _spans(net: _Net, q: int, base: list, axis: int) -> list:
+    """Sorted list of the q inputs ``base`` shifted 0..q−1 along ``axis``, built from shared power-of-two spans."""
+    unit = (1, 0) if axis == 0 else (0, 1)
+    spans = {1: base}
+    s = 1
+    while 2 * s <= q:
+        spans[2 * s] = net.merge(spans[s], _shift(spans[s], unit[0] * s, unit[1] * s))
+        s *= 2
+    parts, offset, rest = [], 0, q
+    for s in sorted(spans, reverse=True):
+        while rest >= s:
+            parts.append(_shift(spans[s], unit[0] * offset, unit[1] * offset))
+            offset += s
+            rest -= s
+    return parts
+
+
+@lru_cache(maxsize=8)
+def _median_network(q: int) -> tuple[_Net, tuple[int, int, int]]:
+    """The pruned network whose output at (y, x) is the median of input[y:y+q, x:x+q]."""
+    net = _Net()
+    k = (q * q - 1) // 2
+    column: list = []
+    for part in _spans(net, q, [(net.input, 0, 0)], axis=0):
+        column = net.merge(column, part) if column else part
+    groups = _spans(net, q, column, axis=1)
+    if len(groups) == 1:
+        return net, groups[0][k]
+    left = groups[0]
+    for g in groups[1:-1]:
+        left = net.merge(left, g)
+    return net, net.kth_of_union(left, groups[-1], k)
+
+
+@dataclass
+class _Program:
+    steps: list[tuple[Any, int, int, int, int, int, int, int, int]]
+    slots: int
+    length: int
+    out_slot: int
+    in_range: tuple[int, int]
+    row: int
+
+
+@lru_cache(maxsize=64)
+def _program(q: int, th: int, tw: int) -> _Program:
+    """Compile the network for a tile of th×tw outputs on a flattened input with row length tw + q − 1.
+
+    Shifts become flat offsets; values computed in the q − 1 columns past each row
+    end are never used by a valid output.  Registers are reused as soon as their
+    last reader has run, so a tile's working set stays in cache.
+    """
+    net, out = _median_network(q)
+    row = tw + q - 1
+    order = net.live(out)
+    offset = lambda r: r[1] * row + r[2]  # noqa: E731
+    span = {out[0]: [offset(out), offset(out) + (th - 1) * row + tw]}
+    for n in reversed(order):
+        name, a, b = net.nodes[n]
+        if name == "in":
+            continue
+        lo, hi = span[n]
+        for r in (a, b):
+            o = offset(r)
+            cur = span.get(r[0])
+            span[r[0]] = [lo + o, hi + o] if cur is None else [min(cur[0], lo + o), max(cur[1], hi + o)]
+    last: dict[int, int] = {}
+    for n in order:
+        name, a, b = net.nodes[n]
+        if name != "in":
+            last[a[0]] = n
+            last[b[0]] = n
+    free: list[int] = []
+    slot: dict[int, int] = {}
+    slots = length = 0
+    steps = []
+    for n in order:
+        name, a, b = net.nodes[n]
+        if name == "in":
+            continue
+        lo, hi = span[n]
+        if free:
+            s = free.pop()
+        else:
+            s, slots = slots, slots + 1
+        slot[n] = s
+
+        def source(r):
+            start = lo + offset(r) - span[r[0]][0]
+            return (-1 if r[0] == net.input else slot[r[0]]), start
+
+        sa, a0 = source(a)
+        sb, b0 = source(b)
+        steps.append((np.minimum if name == "min" else np.maximum, sa, a0, a0 + hi - lo, sb, b0, b0 + hi - lo, s,
+                      hi - lo))
+        for m in {a[0], b[0]}:
+            if last.get(m) == n and m != net.input:
+                free.append(slot[m])
+        length = max(length, hi - lo)
+    lo_in, hi_in = span[net.input]
+    assert span[out[0]][0] == offset(out) and lo_in >= 0 and hi_in <= (th + q - 1) * row
+    return _Program(steps, slots, length, slot[out[0]], (lo_in, hi_in), row)
+
+
+#: Below this many pixels the median runs in one process (forking costs more than it saves).
+PARALLEL_MIN_PIXELS = 2_000_000
+
+
+def _can_fork() -> bool:
+    import sys
+
+    return sys.platform.startswith("linux") and hasattr(os, "fork")
+
+
+def _forked(work: Any, tiles: list, workers: int, result: np.ndarray) -> np.ndarray:
+    """Run ``work`` over interleaved tile lists in ``workers`` processes writing one shared output.
+
+    NumPy holds the GIL between its (short) ufunc calls, so threads barely
+    overlap; forked children share the input copy-on-write and write their
+    tiles into an anonymous shared mapping.  A child that fails makes the
+    parent redo its tiles.
+    """
+    import mmap
+
+    shared = mmap.mmap(-1, result.nbytes)
+    out = np.frombuffer(shared, dtype=np.float32).reshape(result.shape)
+    chunks = [tiles[i::workers] for i in range(workers)]
+    children = []
+    for chunk in chunks[1:]:
+        pid = os.fork()
+        if pid == 0:  # child: compute, write, leave without any cleanup
+            code = 1
+            try:
+                work(chunk, out)
+                code = 0
+            finally:
+                os._exit(code)
+        children.append((pid, chunk))
+    try:
+        work(chunks[0], out)
+    finally:
+        statuses = [(os.waitpid(pid, 0)[1], chunk) for pid, chunk in children]
+    for status, chunk in statuses:
+        if status != 0:
+            work(chunk, out)
+    final = np.array(out)  # copy out of the mapping before it is closed
+    del out
+    shared.close()
+    return final
+
+
+def median_filter(image: np.ndarray, q: int = DEFAULT_Q, threads: int | None = None,
+                  tile: tuple[int, int] = (32, 1024)) -> np.ndarray:
+    """Exact q×q median of a 2-D image (float32 result), boundary mirrored as scipy's ``mode='reflect'``.
+
+    Parameters
+    ----------
+    image
+        2-D array (any real dtype; computed in float32).
+    q
+        Odd kernel size.  Up to :data:`NETWORK_MAX_Q` a pruned comparator network
+        is used; larger kernels fall back to :func:`scipy.ndimage.median_filter`.
+    threads
+        Parallel workers over tiles (default: number of CPUs, at most 4).  On
+        Linux, images of ≥ 2 MP are split over forked processes (NumPy's
+        per-call overhead holds the GIL, so threads hardly overlap); elsewhere threads.
+    tile
+        Output tile (rows, columns) per network evaluation; the default keeps
+        the working set in a 2 MB L2 cache.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 array of the image's shape, equal to
+        ``scipy.ndimage.median_filter(image.astype(np.float32), q, mode='reflect')``.
+    """
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ValueError(f"median_filter needs a 2-D image, got shape {image.shape}")
+    if q < 1 or q % 2 == 0:
+        raise UsageError(f"the median kernel size q must be odd and ≥ 1, not {q}")
+    data = image.astype(np.float32, copy=False)
+    if q == 1:
+        return data.copy()
+    h = q // 2
+    if q > NETWORK_MAX_Q or min(data.shape) <= h:
+        return ndimage.median_filter(data, q, mode="reflect")
+    height, width = data.shape
+    padded = np.pad(data, h, mode="symmetric")
+    result = np.empty((height, width), np.float32)
+    th, tw = tile
+    tiles = [(y, x) for y in range(0, height, th) for x in range(0, width, tw)]
+
+    def work(chunk: list[tuple[int, int]], target: np.ndarray = result) -> None:
+        buffers: list[np.ndarray] = []
+        for y, x in chunk:
+            hh, ww = min(th, height - y), min(tw, width - x)
+            prog = _program(q, hh, ww)
+            if len(buffers) < prog.slots or (buffers and len(buffers[0]) < prog.length):
+                buffers = [np.empty(prog.length, np.float32) for _ in range(prog.slots)]
+            flat = np.ascontiguousarray(padded[y:y + hh + 2 * h, x:x + ww + 2 * h]).reshape(-1)
+            source = flat[prog.in_range[0]:prog.in_range[1]]
+            for fn, sa, a0, a1, sb, b0, b1, s, n in prog.steps:
+                fn((source if sa < 0 else buffers[sa])[a0:a1], (source if sb < 0 else buffers[sb])[b0:b1],
+                   out=buffers[s][:n])
+            out = np.empty(hh * prog.row, np.float32)
+            n = (hh - 1) * prog.row + ww
+            out[:n] = buffers[prog.out_slot][:n]
+            target[y:y + hh, x:x + ww] = out.reshape(hh, prog.row)[:, :ww]
+
+    workers = max(1, min(threads or min(os.cpu_count() or 1, 4), len(tiles)))
+    if workers == 1 or height * width < PARALLEL_MIN_PIXELS:
+        work(tiles)
+    elif _can_fork():
+        result = _forked(work, tiles, workers, result)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(work, [tiles[i::workers] for i in range(workers)]))
+    return result
+
+
+# =========================================================================== masks
+@dataclass(frozen=True)
+class MaskSpec:
+    """Which pixels are analysed.
+
+    ``kind``: ``'centre'`` (leave out a centred rectangle whose sides are
+    ``fraction`` of the frame's — where the subject usually is), ``'auto'``
+    (leave out pixels whose local texture is high), ``'all'`` or ``'file'``
+    (a mask image: non-zero = analysed).
+    """
+
+    kind: str = "centre"
+    fraction: float = DEFAULT_CENTRE_FRACTION
+    path: str | None = None
+    window: int = 15
+    factor: float = 3.0
+
+    def describe(self) -> str:
+        if self.kind == "centre":
+            return f"centre left out ({self.fraction:g} of width and height)"
+        if self.kind == "auto":
+            return f"automatic: textured pixels left out (local mean |d̂| over {self.window}×{self.window} > {self.factor:g}× its median)"
+        if self.kind == "file":
+            return f"mask image {self.path}"
+        return "every pixel"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "fraction": self.fraction, "path": self.path, "window": self.window,
+                "factor": self.factor}
+
+    @classmethod
+    def from_dict(cls, obj: dict[str, Any]) -> "MaskSpec":
+        return cls(**{k: obj[k] for k in ("kind", "fraction", "path", "window", "factor") if k in obj})
+
+
+def parse_mask(text: str | None) -> MaskSpec:
+    """``centre``, ``centre:0.6``, ``auto``, ``all`` or a path to a mask image."""
+    if text is None or text == "":
+        return MaskSpec()
+    low = text.lower()
+    if low in ("centre", "center") or low.startswith(("centre:", "center:")):
+        if ":" not in low:
+            return MaskSpec("centre")
+        try:
+            frac = float(low.split(":", 1)[1])
+        except ValueError:
+            raise UsageError(f"--mask '{text}': give centre:FRACTION with a number, e.g. centre:0.5") from None
+        if not 0.0 <= frac < 1.0:
+            raise UsageError(f"--mask '{text}': the centre fraction must be in [0, 1)")
+        return MaskSpec("centre", frac)
+    if low == "auto":
+        return MaskSpec("auto")
+    if low in ("all", "none"):
+        return MaskSpec("all")
+    if not Path(text).is_file():
+        raise InputError(f"--mask '{text}': no such mask image; give centre[:FRACTION], auto, all or a mask file")
+    return MaskSpec("file", path=str(text))
+
+
+def centre_mask(shape: tuple[int, int], fraction: float) -> np.ndarray:
+    """True outside a centred rectangle whose sides are ``fraction`` of the frame's."""
+    h, w = shape
+    mask = np.ones((h, w), bool)
+    ch, cw = int(round(h * fraction)), int(round(w * fraction))
+    if ch and cw:
+        y0, x0 = (h - ch) // 2, (w - cw) // 2
+        mask[y0:y0 + ch, x0:x0 + cw] = False
+    return mask
+
+
+def texture_mask(d_hat: np.ndarray, window: int = 15, factor: float = 3.0) -> np.ndarray:
+    """True where the local mean of |d̂| is at most ``factor`` times its image-wide median.
+
+    A single defect moves a window's mean by 1/window² of its amplitude, so
+    isolated defects stay inside; edges and texture in the mean image leave.
+    """
+    local = ndimage.uniform_filter(np.abs(d_hat).astype(np.float32), window, mode="reflect")
+    return local <= factor * max(float(np.median(local)), np.finfo(np.float32).tiny)
+
+
+def load_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
+    """A mask image as booleans (non-zero = analysed); must match the frames' size."""
+    from .io import read_image
+
+    img = read_image(path)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    if img.shape != tuple(shape):
+        raise InputError(f"{path}: mask is {img.shape[1]}×{img.shape[0]} but the images are {shape[1]}×{shape[0]}")
+    return img > 0
+
+
+# =========================================================================== detection
+@dataclass
+class ChannelFit:
+    """Robust normal fit of d̂ on one channel and the threshold derived from it."""
+
+    name: str
+    center: float
+    scale: float
+    tau: float
+    n_pixels: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"channel": self.name, "center": self.center, "scale": self.scale, "tau": self.tau,
+                "n_pixels": self.n_pixels}
+
+
+@dataclass
+class DetectionResult:
+    """Defects found in one stack of images.
+
+    Array attributes (x, y, kind, amplitude, z, channel) hold one entry per
+    defect: kind is :data:`~forensics.model.PARTIAL` or
+    :data:`~forensics.model.STUCK`; amplitude is d̂ (DN) for partially stuck
+    pixels and the stuck value c for stuck ones; z is (d̂ − center)/scale.
+    ``d_hat`` and ``mask`` are image-sized and not serialised.
+    """
+
+    shape: tuple[int, int]
+    n_images: int
+    q: int
+    sigma: float | None
+    tau_given: float | None
+    stuck_tolerance: float
+    mask_spec: MaskSpec
+    n_analysed: int
+    fits: list[ChannelFit]
+    x: np.ndarray
+    y: np.ndarray
+    kind: np.ndarray
+    amplitude: np.ndarray
+    z: np.ndarray
+    channel: np.ndarray
+    hist_thresholds: np.ndarray
+    hist_counts: np.ndarray
+    hist_expected: np.ndarray
+    cfa: str | None = None
+    warnings: list[str] = field(default_factory=list)
+    d_hat: np.ndarray | None = field(default=None, repr=False)
+    mask: np.ndarray | None = field(default=None, repr=False)
+    full_scale: float | None = None
+    _sites: dict[Any, set[tuple[int, int]]] = field(default_factory=dict, repr=False)
+
+    @property
+    def megapixels(self) -> float:
+        """Area analysed (megapixels): the denominator of every rate."""
+        return self.n_analysed / 1e6
+
+    def count(self, kind: int | None = None) -> int:
+        return int(len(self.x) if kind is None else np.sum(self.kind == kind))
+
+    def sites(self, kind: int | None = None) -> set[tuple[int, int]]:
+        """The (x, y) sites of the defects (of one kind)."""
+        if kind not in self._sites:
+            sel = np.ones(len(self.x), bool) if kind is None else self.kind == kind
+            self._sites[kind] = set(zip(self.x[sel].tolist(), self.y[sel].tolist()))
+        return self._sites[kind]
+
+    def amplitudes(self) -> dict[tuple[int, int], float]:
+        """Amplitude by site."""
+        return dict(zip(zip(self.x.tolist(), self.y.tolist()), self.amplitude.tolist()))
+
+    @property
+    def tau(self) -> float:
+        """The threshold (DN) of the first channel (grey images have one)."""
+        return self.fits[0].tau
+
+    def threshold_dict(self) -> dict[str, Any]:
+        """How the threshold was set: sigma or a given τ, τ per channel, q, mask."""
+        return {"sigma": self.sigma, "tau_given": self.tau_given, "tau": [f.tau for f in self.fits] if len(self.fits) > 1
+                else self.fits[0].tau, "q": self.q, "mask": self.mask_spec.describe(),
+                "stuck_tolerance": self.stuck_tolerance, "analysed_megapixels": self.megapixels}
+
+    def defect_rows(self) -> list[dict[str, Any]]:
+        names = [f.name for f in self.fits]
+        rows = []
+        for i in range(len(self.x)):
+            row = {"x": int(self.x[i]), "y": int(self.y[i]), "kind": KIND_NAMES[int(self.kind[i])],
+                   "amplitude": float(self.amplitude[i]), "z": float(self.z[i])}
+            if self.cfa:
+                row["channel"] = names[int(self.channel[i])]
+            rows.append(row)
+        return rows
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"shape": list(self.shape), "n_images": self.n_images, "threshold": self.threshold_dict(),
+                "fits": [f.to_dict() for f in self.fits], "cfa": self.cfa,
+                "counts": {"partial": self.count(PARTIAL), "stuck": self.count(STUCK)},
+                "defects": self.defect_rows(),
+                "accumulated_histogram": {"threshold": self.hist_thresholds.tolist(),
+                                          "pixels_above": self.hist_counts.tolist(),
+                                          "expected_normal": self.hist_expected.tolist()},
+                "warnings": list(self.warnings)}
+
+
+#: The robust fit uses at most this many values (an evenly strided subsample beyond).
+FIT_MAX_VALUES = 4_000_000
+
+
+def robust_normal(values: np.ndarray) -> tuple[float, float]:
+    """Median and 1.4826·MAD: the centre and σ of a normal fitted to the bulk, ignoring outliers.
+
+    Beyond :data:`FIT_MAX_VALUES` values an evenly strided subsample is used
+    (its sampling error, ~1e-3 σ, is far below anything that matters here).
+    """
+    values = np.asarray(values, np.float32).ravel()
+    if values.size == 0:
+        raise InputError("no pixels left to fit the noise of d̂; use a smaller --mask or more of the frame")
+    if values.size > FIT_MAX_VALUES:
+        values = values[:: -(-values.size // FIT_MAX_VALUES)]
+    center = float(np.median(values))
+    scale = MAD_TO_SIGMA * float(np.median(np.abs(values - np.float32(center))))
+    return center, scale
+
+
+def accumulated_histogram(values: np.ndarray, center: float, scale: float, top: float | None = None,
+                          points: int = 400) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Number of values above each threshold x (x from the centre to the largest value), and the normal expectation.
+
+    Returns ``(thresholds, counts, expected)`` where ``expected = N·P(Z > (x − center)/scale)``.
+    """
+    values = np.asarray(values, np.float32).ravel()
+    hi = float(values.max()) if top is None else top
+    hi = max(hi, center + 10 * max(scale, 1e-12))
+    edges = np.linspace(center, hi, points)
+    # uniform bins (NumPy's fast path); bin i holds (edges[i], edges[i+1]]; the last edge collects the rest
+    hist, _ = np.histogram(values, bins=points - 1, range=(center, hi))
+    above_top = int(np.count_nonzero(values > hi))
+    counts = np.cumsum(np.concatenate([hist, [above_top]])[::-1])[::-1]
+    counts[0] = np.count_nonzero(values > center)
+    expected = values.size * stats.norm.sf((edges - center) / max(scale, 1e-12))
+    return edges, counts.astype(np.int64), expected
+
+
+def _constant(stats_: StackStats, tolerance: float) -> np.ndarray:
+    if tolerance <= 0:
+        const = stats_.maximum == stats_.minimum
+    else:
+        const = (stats_.maximum.astype(np.float64) - stats_.minimum.astype(np.float64)) <= tolerance
+    return const.all(axis=2) if const.ndim == 3 else const
+
+
+def _constant_neighbours(const: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """For each True of ``candidates``, how many of its 8 neighbours are constant (image-sized int array)."""
+    ys, xs = np.nonzero(candidates)
+    out = np.zeros(const.shape, np.int16)
+    if len(ys) > 200_000:
+        full = ndimage.uniform_filter(const.astype(np.float32), 3, mode="nearest") * 9 - const
+        out[ys, xs] = np.rint(full[ys, xs]).astype(np.int16)
+        return out
+    padded = np.pad(const, 1, mode="edge")
+    count = np.zeros(len(ys), np.int16)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                count += padded[ys + 1 + dy, xs + 1 + dx]
+    out[ys, xs] = count
+    return out
+
+
+def _grey(a: np.ndarray) -> np.ndarray:
+    return a.mean(axis=2, dtype=np.float32) if a.ndim == 3 else a.astype(np.float32, copy=False)
+
+
+def _lattices(shape: tuple[int, int], cfa: str | None) -> list[tuple[str, tuple[slice, slice]]]:
+    if not cfa:
+        return [("grey", (slice(None), slice(None)))]
+    if len(cfa) != 4:
+        raise InputError(f"CFA pattern '{cfa}' must name the 4 positions of the 2×2 cell, e.g. RGGB")
+    names = []
+    for i, c in enumerate(cfa):
+        label = c + (str(cfa[:i].count(c) + 1) if cfa.count(c) > 1 else "")
+        names.append((label, (slice(i // 2, None, 2), slice(i % 2, None, 2))))
+    return names
+
+
+def expected_false_alarms(n_pixels: int, sigma: float) -> float:
+    """False partially-stuck alarms expected among ``n_pixels`` at a threshold of ``sigma`` under the normal model."""
+    return float(n_pixels * stats.norm.sf(sigma))
+
+
+def detect(stack: StackStats, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SIGMA, tau: float | None = None,
+           mask: MaskSpec | np.ndarray | None = None, stuck_tolerance: float = 0.0, cfa: str | None = None,
+           full_scale: float | None = None, threads: int | None = None, keep_images: bool = True) -> DetectionResult:
+    """Detect stuck (eq. 11) and partially stuck (eq. 15, d̂ > τ) pixels from stack statistics.
+
+    Parameters
+    ----------
+    stack
+        Statistics of K images of one device (:func:`forensics.stack.stack_stats`).
+    q
+        Median kernel size (odd).
+    sigma, tau
+        Threshold: ``center + sigma·scale`` of the robust normal fit of d̂, or the
+        given τ in DN (``tau`` wins when both are given).
+    mask
+        A :class:`MaskSpec` (default: centre left out) or a boolean image (True = analysed).
+    stuck_tolerance
+        Largest ``max − min`` (DN) still counted as "the same value in all K images".
+    cfa
+        CFA pattern (e.g. ``"RGGB"``) when the images are raw mosaics: each 2×2
+        sub-lattice is filtered, fitted and thresholded on its own.
+    full_scale
+        Saturation value of the data (for reports; optional).
+
+    Returns
+    -------
+    DetectionResult
+    """
+    if tau is None and (sigma is None or sigma <= 0):
+        raise UsageError("give a positive --sigma or a threshold --tau")
+    mean = _grey(stack.mean)
+    shape = mean.shape
+    if cfa and (shape[0] % 2 or shape[1] % 2):
+        shape_note = f"{shape[1]}×{shape[0]}"
+        raise InputError(f"a raw mosaic of odd size ({shape_note}) cannot be split into 2×2 CFA cells")
+    const = _constant(stack, stuck_tolerance)
+    d_hat = np.empty(shape, np.float32)
+    lattices = _lattices(shape, cfa)
+    for _, (sy, sx) in lattices:
+        sub = np.ascontiguousarray(mean[sy, sx])
+        d_hat[sy, sx] = sub - median_filter(sub, q, threads=threads)
+    if isinstance(mask, np.ndarray):
+        if mask.shape != shape:
+            raise InputError(f"mask of shape {mask.shape} does not match the images' {shape}")
+        region, spec = mask.astype(bool), MaskSpec("file", path="(array)")
+    else:
+        spec = mask or MaskSpec()
+        if spec.kind == "centre":
+            region = centre_mask(shape, spec.fraction)
+        elif spec.kind == "auto":
+            region = texture_mask(d_hat, spec.window, spec.factor)
+        elif spec.kind == "file":
+            region = load_mask(spec.path, shape)  # type: ignore[arg-type]
+        else:
+            region = np.ones(shape, bool)
+    # the median is ill-defined within q//2 of the edge (mirrored neighbourhoods bias d̂ on any gradient)
+    edge = (q // 2) * (2 if cfa else 1)
+    if edge:
+        region = region.copy()
+        region[:edge] = region[-edge:] = False
+        region[:, :edge] = region[:, -edge:] = False
+    # stuck: constant over K images while at most 2 of the 8 neighbours are (a clipped patch is no defect)
+    candidates = const & region
+    constant_fraction = float(candidates.sum()) / max(int(region.sum()), 1)
+    if constant_fraction > MAX_CONSTANT_FRACTION:
+        stuck = np.zeros(shape, bool)
+    else:
+        stuck = candidates & (_constant_neighbours(const, candidates) <= 2)
+    fits = []
+    above = np.zeros(shape, bool)
+    all_values = []
+    for index, (name, (sy, sx)) in enumerate(lattices):
+        sub_region = region[sy, sx] & ~stuck[sy, sx]
+        values = d_hat[sy, sx][sub_region]
+        center, scale = robust_normal(values)
+        if scale <= 0:
+            scale = float(np.std(values)) or 1e-6
+        threshold = float(tau) if tau is not None else center + float(sigma) * scale  # type: ignore[arg-type]
+        fits.append(ChannelFit(name, center, scale, threshold, int(values.size)))
+        above[sy, sx] = (d_hat[sy, sx] > threshold) & sub_region
+        all_values.append(values if len(lattices) == 1 else
+                          (values - np.float32(center)) / np.float32(scale) * np.float32(fits[0].scale)
+                          + np.float32(fits[0].center))
+    partial = above & ~stuck
+    ys, xs = np.nonzero(partial | stuck)
+    kind = np.where(stuck[ys, xs], STUCK, PARTIAL).astype(np.int8)
+    amplitude = np.where(kind == STUCK, mean[ys, xs], d_hat[ys, xs]).astype(np.float64)
+    channel = np.zeros(len(xs), np.int8)
+    if cfa:
+        channel = ((ys % 2) * 2 + (xs % 2)).astype(np.int8)
+    centers = np.array([f.center for f in fits])[channel]
+    scales = np.array([f.scale for f in fits])[channel]
+    z_sites = (d_hat[ys, xs].astype(np.float64) - centers) / scales
+    # accumulated histogram in DN of the first channel's scale (all channels pooled in σ units)
+    pooled = np.concatenate(all_values) if len(all_values) > 1 else all_values[0]
+    c0, s0 = fits[0].center, fits[0].scale
+    hist_x, hist_n, hist_e = accumulated_histogram(pooled, c0, s0)
+    n_analysed = int(region.sum())
+    result = DetectionResult(shape=shape, n_images=stack.n, q=q, sigma=None if tau is not None else sigma,
+                             tau_given=tau, stuck_tolerance=stuck_tolerance, mask_spec=spec, n_analysed=n_analysed,
+                             fits=fits, x=xs.astype(np.int64), y=ys.astype(np.int64), kind=kind, amplitude=amplitude,
+                             z=z_sites, channel=channel, hist_thresholds=hist_x,
+                             hist_counts=hist_n, hist_expected=hist_e, cfa=cfa, full_scale=full_scale)
+    if constant_fraction > MAX_CONSTANT_FRACTION:
+        result.warnings.append(
+            f"{constant_fraction:.1%} of the analysed pixels kept one value (within {stuck_tolerance:g} DN) over all "
+            f"{stack.n} images: the scenes are too alike (flat fields, a static view) or the tolerance is too large, "
+            "so the stuck test cannot tell stuck pixels from static content; no stuck pixels are reported")
+    if stack.n < MIN_IMAGES:
+        eff_sigma = sigma if tau is None else (tau - c0) / s0
+        fa = expected_false_alarms(sum(f.n_pixels for f in fits), float(eff_sigma))  # type: ignore[arg-type]
+        result.warnings.append(
+            f"only {stack.n} images (fewer than {MIN_IMAGES}): the mean still shows the scenes, so d̂ is far from "
+            f"normal; even under the normal model about {fa:.2g} false partially-stuck alarms are expected among "
+            f"{sum(f.n_pixels for f in fits)} pixels at {eff_sigma:.3g}σ, and pixels that happen to repeat a value "
+            f"{stack.n} times pass the stuck test; use at least {MIN_IMAGES} (better ≥ 50) images")
+    if keep_images:
+        result.d_hat, result.mask = d_hat, region
+    return result
+
+
+# =========================================================================== streaming from a dataset
+def prefetch(items: Iterable[Any], depth: int = 2) -> Iterator[Any]:
+    """Yield ``items`` while a background thread produces the next ``depth`` ones (decoding overlaps computing)."""
+    import queue
+
+    box: queue.Queue = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if stop.is_set():
+                    return
+                box.put((True, item))
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
+            box.put((False, exc))
+            return
+        box.put((True, done))
+
+    worker = threading.Thread(target=produce, daemon=True)
+    worker.start()
+    try:
+        while True:
+            ok, item = box.get()
+            if not ok:
+                raise item
+            if item is done:
+                return
+            yield item
+    finally:
+        stop.set()
+        while worker.is_alive():
+            try:
+                box.get_nowait()
+            except Exception:  # noqa: BLE001
+                worker.join(0.01)
+
+
+def dataset_cfa(ds: Any) -> str | None:
+    """The CFA pattern when the dataset's frames are raw mosaics, else None."""
+    from .io import is_raw, read_raw
+
+    if ds.frames and is_raw(ds.frames[0].path):
+        return read_raw(ds.frames[0].path).cfa_pattern
+    return None
+
+
+class IntegerStackAccumulator:
+    """:class:`~forensics.stack.StackAccumulator` for uint8/uint16 images with exact integer sums.
+
+    The sums of values and of squares are kept in unsigned integers (uint32;
+    uint64 for the squares of 16-bit data), so they are exact and cost a quarter to a half of the float64
+    passes of the general accumulator — which keeps detection at reading
+    speed.  :meth:`result` returns the same :class:`~forensics.stack.StackStats`.
+    """
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._dtype: np.dtype | None = None
+        self._s1 = self._s2 = self._sq = self._min = self._max = None
+
+    @staticmethod
+    def accepts(image: np.ndarray) -> bool:
+        return image.dtype in (np.uint8, np.uint16)
+
+    def add(self, image: np.ndarray, name: str = "image") -> None:
+        if self._dtype is None:
+            self._dtype = image.dtype
+            wide = np.uint16 if image.dtype == np.uint8 else np.uint32
+            self._s1 = np.zeros(image.shape, np.uint32)
+            self._s2 = np.zeros(image.shape, np.uint32 if image.dtype == np.uint8 else np.uint64)
+            self._sq = np.empty(image.shape, wide)
+            self._min, self._max = image.copy(), image.copy()
+        elif image.shape != self._min.shape or image.dtype != self._dtype:
+            raise InputError(f"{name}: {image.dtype} {image.shape} differs from the first image's "
+                             f"{self._dtype} {self._min.shape}; a stack's images must all have one size and type")
+        else:
+            np.minimum(self._min, image, out=self._min)
+            np.maximum(self._max, image, out=self._max)
+        limit = 65_000  # uint32 sums stay exact up to 65,537 images of 16 bits
+        if self.n + 1 >= limit:
+            raise InputError(f"more than {limit - 1} images in one stack; split the set")
+        np.add(self._s1, image, out=self._s1)
+        np.multiply(image, image, out=self._sq, dtype=self._sq.dtype)
+        np.add(self._s2, self._sq, out=self._s2)
+        self.n += 1
+
+    def result(self) -> StackStats:
+        """Mean and unbiased variance (float32), computed in row blocks (no image-sized float64 temporaries)."""
+        if self.n == 0:
+            raise InputError("no images to accumulate")
+        n = self.n
+        mean = np.empty(self._s1.shape, np.float32)
+        var = np.zeros(self._s1.shape, np.float32)
+        rows = max(1, 1_000_000 // max(1, int(np.prod(self._s1.shape[1:]))))
+        for y in range(0, self._s1.shape[0], rows):
+            s1 = self._s1[y:y + rows].astype(np.float64)
+            m = s1 / n
+            mean[y:y + rows] = m
+            if n > 1:
+                v = self._s2[y:y + rows].astype(np.float64)
+                v -= s1 * m
+                v /= n - 1
+                np.maximum(v, 0.0, out=v)
+                var[y:y + rows] = v
+        return StackStats(n, mean, var, self._min.copy(), self._max.copy())
+
+
+def stack_dataset(ds: Any, progress: Progress = no_progress, desc: str = "reading") -> StackStats:
+    """Stream a dataset once into :class:`StackStats` (decoding in a background thread).
+
+    Integer images use :class:`IntegerStackAccumulator` (exact, cheaper); others
+    the general :class:`~forensics.stack.StackAccumulator`.
+    """
+    acc: Any = None
+    for frame, image in zip(ds.frames, prefetch(progress(ds.images(), total=len(ds), desc=desc))):
+        if acc is None:
+            acc = IntegerStackAccumulator() if IntegerStackAccumulator.accepts(image) else StackAccumulator()
+        acc.add(image, name=str(frame.path))
+    if acc is None:
+        raise InputError(f"{ds.root}: no images")
+    return acc.result()
+
+
+def detect_dataset(ds: Any, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SIGMA, tau: float | None = None,
+                   mask: MaskSpec | None = None, stuck_tolerance: float = 0.0, progress: Progress = no_progress,
+                   threads: int | None = None) -> DetectionResult:
+    """:func:`detect` on a dataset folder's images (one streaming pass; raw mosaics per CFA channel)."""
+    from .io import dtype_max
+
+    if len(ds) == 0:
+        raise InputError(f"{ds.root}: no images")
+    ds.shape()  # one size, or a clear error naming the odd file
+    stack = stack_dataset(ds, progress)
+    cfa = dataset_cfa(ds)
+    return detect(stack, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance, cfa=cfa,
+                  full_scale=dtype_max(stack.minimum.dtype), threads=threads)
+
+
+# =========================================================================== report figures
+def histogram_figure(result: DetectionResult):
+    """The accumulated histogram: pixels above each threshold, log scale, with τ and the normal expectation."""
+    from .report import new_figure
+
+    fig, ax = new_figure(6.4, 4.0)
+    x = result.hist_thresholds
+    ax.step(x, np.maximum(result.hist_counts, 0.5), where="post", label="pixels with d̂ above x")
+    ax.plot(x, np.maximum(result.hist_expected, 1e-3), "--", color="C2", label="normal model (robust fit)")
+    for fit in result.fits[:1]:
+        ax.axvline(fit.tau, color="C3", lw=1.5, label=f"τ = {fit.tau:.4g} DN")
+    ax.set_yscale("log")
+    ax.set_ylim(0.5, max(2.0, float(result.hist_counts.max()) * 2))
+    ax.set_xlabel("threshold x on d̂ (DN)")
+    ax.set_ylabel("number of pixels with d̂ > x")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def defect_map_figure(result: DetectionResult, title: str = ""):
+    """Where the defects are, over the analysed region."""
+    from .report import new_figure
+
+    h, w = result.shape
+    fig, ax = new_figure(6.4, 6.4 * h / w + 0.6)
+    if result.mask is not None:
+        ax.imshow(result.mask, cmap="Greys_r", vmin=-1, vmax=1.5, interpolation="nearest")
+    for kind, marker, colour, label in ((PARTIAL, "o", "C0", "partially stuck"), (STUCK, "s", "C3", "stuck")):
+        sel = result.kind == kind
+        ax.scatter(result.x[sel], result.y[sel], s=18, marker=marker, facecolors="none", edgecolors=colour,
+                   label=f"{label} ({int(sel.sum())})")
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.set_title(title or "defect map (grey: analysed region)", fontsize=9)
+    ax.legend(fontsize=8, loc="upper right")
+    return fig
+
+
+def detection_report(result: DetectionResult, title: str = "Defect detection", source: str = "") -> Any:
+    """An HTML report of one detection: summary, threshold, accumulated histogram, map, table."""
+    from .report import Report
+
+    rep = Report(title)
+    rep.text(f"{source + ': ' if source else ''}{result.n_images} images of {result.shape[1]}×{result.shape[0]}; "
+             f"analysed region: {result.mask_spec.describe()} ({result.megapixels:.4g} MP). "
+             f"Median kernel q = {result.q}.")
+    for w in result.warnings:
+        rep.text(w, note=True)
+    rep.table(["channel", "center (DN)", "σ = 1.4826·MAD (DN)", "τ (DN)", "pixels"],
+              [[f.name, f.center, f.scale, f.tau, f.n_pixels] for f in result.fits])
+    rep.text(f"{result.count(PARTIAL)} partially stuck and {result.count(STUCK)} stuck pixels.")
+    rep.figure(histogram_figure(result), "accumulated_histogram",
+               "Accumulated histogram of d̂ = mean − median_q(mean): pixels above each threshold. Where the "
+               "measured curve leaves the normal model is where defects begin; τ is marked.")
+    rep.figure(defect_map_figure(result), "defect_map", "Detected defects over the analysed region.")
+    rows = result.defect_rows()[:200]
+    if rows:
+        rep.table(list(rows[0]), [list(r.values()) for r in rows],
+                  caption=None if len(result.x) <= 200 else f"first 200 of {len(result.x)}")
+    return rep

@@ -1,0 +1,735 @@
+"""Defect growth rates from image sets of one device taken at different dates.
+
+Three families of estimates are computed side by side:
+
+* **The paper's** (section 3.2, eq. 16–20), exactly as written:
+  γ = n_match/n₁ (16), λ_ps = γ·(n₂ − n₁)/((T₂ − T₁)·w·h) (17), λ_s likewise from
+  the stuck counts (18), a_ps = max(D_{s_k}) (19), a_s := 255 (20); w·h is the
+  frame size in megapixels so that rates are per megapixel per year.
+* **Capture–recapture**: the two epochs' detections as two captures of a
+  population that only gains members (once defective, always defective).
+  Chapman's bias-corrected estimator N̂ = (n₁+1)(n₂+1)/(m+1) − 1 estimates the
+  defects present at the second epoch, missed ones included, with
+  var = (n₁+1)(n₂+1)(n₁−m)(n₂−m)/((m+1)²(m+2)).
+* **Poisson counts with exact intervals**: the defects that first appear after
+  the first epoch form a Poisson count with mean λ·A·(T_last − T_first) (A =
+  analysed megapixels), so the rate has an exact Garwood interval.  A site
+  first detected at epoch i is checked at earlier epochs with a lower
+  threshold (z > 3 by default) before it counts as new, which keeps defects
+  near the threshold from "appearing" twice.  From three epochs on, a
+  Poisson regression of the per-interval new counts on time (log link,
+  exposure offset) gives a likelihood-ratio test of constant rate, i.e. of
+  linear growth of the cumulative count.
+
+Rates are in defects per megapixel per year of the *analysed* region, always
+reported with the detection threshold used.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from .defects import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect_dataset
+from .errors import InputError
+from .model import KIND_CODES, KIND_NAMES, PARTIAL, STUCK
+from .progress import Progress, no_progress
+
+LEVEL = 0.95
+#: z above which a site already counts as present when looking back for a defect's first epoch.
+Z_RECHECK = 3.0
+MODEL_FORMAT = "forensics-growth-model/1"
+
+
+# =========================================================================== exact intervals
+def garwood(k: int, level: float = LEVEL) -> tuple[float, float]:
+    """Exact (Garwood) two-sided interval for the mean of a Poisson count ``k``.
+
+    ``[χ²_{α/2}(2k)/2, χ²_{1−α/2}(2k+2)/2]``, lower bound 0 for ``k = 0``.
+    """
+    if k < 0:
+        raise ValueError("a Poisson count cannot be negative")
+    alpha = 1.0 - level
+    lo = 0.0 if k == 0 else float(stats.chi2.ppf(alpha / 2, 2 * k) / 2)
+    hi = float(stats.chi2.ppf(1 - alpha / 2, 2 * k + 2) / 2)
+    return lo, hi
+
+
+def clopper_pearson(x: int, n: int, level: float = LEVEL) -> tuple[float, float]:
+    """Exact (Clopper–Pearson) interval for a binomial proportion x/n."""
+    alpha = 1.0 - level
+    if n == 0:
+        return 0.0, 1.0
+    lo = 0.0 if x == 0 else float(stats.beta.ppf(alpha / 2, x, n - x + 1))
+    hi = 1.0 if x == n else float(stats.beta.ppf(1 - alpha / 2, x + 1, n - x))
+    return lo, hi
+
+
+def midp_binomial(x: int, n: int, level: float = LEVEL) -> tuple[float, float]:
+    """Mid-p exact interval for a binomial proportion: P(X > x) + ½P(X = x) = α/2 and its mirror.
+
+    Less conservative than Clopper–Pearson; its coverage averages close to the
+    nominal level (used for dating, where Clopper–Pearson's excess width adds up).
+    """
+    from scipy.optimize import brentq
+
+    alpha = 1.0 - level
+    if n == 0:
+        return 0.0, 1.0
+
+    def upper_tail(p: float) -> float:  # P(X > x) + ½P(X = x) under p, increasing in p
+        return float(stats.binom.sf(x, n, p) + 0.5 * stats.binom.pmf(x, n, p))
+
+    lo = 0.0 if x == 0 else brentq(lambda p: upper_tail(p) - alpha / 2, 1e-15, 1 - 1e-15)
+    hi = 1.0 if x == n else brentq(lambda p: upper_tail(p) - (1 - alpha / 2), 1e-15, 1 - 1e-15)
+    return float(lo), float(hi)
+
+
+# =========================================================================== the paper, as written
+def paper_gamma(n1: int, n_match: int) -> float:
+    """Eq. 16: γ = n_match / n₁."""
+    return n_match / n1 if n1 else float("nan")
+
+
+def paper_rate(n1: int, n2: int, n_match: int, t1: float, t2: float, width: int, height: int) -> float:
+    """Eq. 17 (and 18 with stuck counts): λ = γ·(n₂ − n₁)/((T₂ − T₁)·(w·h)), w·h in megapixels.
+
+    >>> round(paper_rate(27, 28, 5, 2009.0, 2013.0, 640, 480), 5)   # the paper's H100 figures
+    0.1507
+    """
+    return paper_gamma(n1, n_match) * (n2 - n1) / ((t2 - t1) * (width * height / 1e6))
+
+
+@dataclass
+class PaperEstimate:
+    """Eq. 16–20 on the first and last epoch."""
+
+    n1: int
+    n2: int
+    n_match: int
+    n_s1: int
+    n_s2: int
+    t1: float
+    t2: float
+    width: int
+    height: int
+    gamma: float
+    lambda_ps: float
+    lambda_s: float
+    a_ps: float
+    a_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def paper_estimate(first: DetectionResult, last: DetectionResult, t1: float, t2: float) -> PaperEstimate:
+    """The paper's estimates from the detections at T₁ and T₂ (sites matched exactly)."""
+    p1, p2 = first.sites(PARTIAL), last.sites(PARTIAL)
+    n1, n2, m = len(p1), len(p2), len(p1 & p2)
+    s1, s2 = first.count(STUCK), last.count(STUCK)
+    h, w = last.shape
+    gamma = paper_gamma(n1, m)
+    lam_ps = paper_rate(n1, n2, m, t1, t2, w, h)
+    lam_s = gamma * (s2 - s1) / ((t2 - t1) * (w * h / 1e6)) if n1 else float("nan")
+    amps = last.amplitude[last.kind == PARTIAL]
+    return PaperEstimate(n1, n2, m, s1, s2, t1, t2, w, h, gamma, lam_ps, lam_s,
+                         float(amps.max()) if len(amps) else float("nan"), 255.0)
+
+
+# =========================================================================== capture–recapture
+@dataclass
+class ChapmanEstimate:
+    """Chapman's capture–recapture estimate of the defects present at the later epoch."""
+
+    n1: int
+    n2: int
+    m: int
+    n_hat: float
+    variance: float
+    ci: tuple[float, float]
+    lincoln_petersen: float
+    efficiency: float
+    level: float = LEVEL
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"n1": self.n1, "n2": self.n2, "m": self.m, "n_hat": self.n_hat, "variance": self.variance,
+                "se": math.sqrt(self.variance), "ci": list(self.ci), "lincoln_petersen": self.lincoln_petersen,
+                "detection_efficiency": self.efficiency, "level": self.level}
+
+
+def chapman(n1: int, n2: int, m: int, level: float = LEVEL) -> ChapmanEstimate:
+    """Chapman's N̂ = (n₁+1)(n₂+1)/(m+1) − 1 and var = (n₁+1)(n₂+1)(n₁−m)(n₂−m)/((m+1)²(m+2)).
+
+    The interval is the normal one, N̂ ± z·√var, floored at the number of distinct
+    defects seen (n₁ + n₂ − m).
+    """
+    if not 0 <= m <= min(n1, n2):
+        raise ValueError(f"matches m = {m} must lie in [0, min(n1, n2)]")
+    n_hat = (n1 + 1) * (n2 + 1) / (m + 1) - 1
+    var = (n1 + 1) * (n2 + 1) * (n1 - m) * (n2 - m) / ((m + 1) ** 2 * (m + 2))
+    z = stats.norm.ppf(0.5 + level / 2)
+    seen = n1 + n2 - m
+    ci = (max(seen, n_hat - z * math.sqrt(var)), n_hat + z * math.sqrt(var))
+    lp = n1 * n2 / m if m else float("inf")
+    return ChapmanEstimate(n1, n2, m, n_hat, var, ci, lp, n2 / n_hat if n_hat > 0 else float("nan"), level)
+
+
+# =========================================================================== Poisson rates and regression
+@dataclass
+class RateEstimate:
+    """A rate in defects per megapixel per year: count / exposure with an exact interval."""
+
+    kind: str
+    count: int
+    exposure: float
+    rate: float
+    ci: tuple[float, float]
+    level: float = LEVEL
+    method: str = "Garwood exact Poisson interval on the defects new after the first epoch"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "count": self.count, "exposure_mp_years": self.exposure, "rate": self.rate,
+                "ci": list(self.ci), "level": self.level, "units": "defects/MP/year", "method": self.method}
+
+
+def poisson_rate(count: int, exposure: float, kind: str = "partial", level: float = LEVEL) -> RateEstimate:
+    """Rate = count / exposure (MP·years) with the Garwood interval scaled by the exposure."""
+    if exposure <= 0:
+        raise InputError("the epochs span no time: give image sets captured at different dates")
+    lo, hi = garwood(int(count), level)
+    return RateEstimate(kind, int(count), float(exposure), count / exposure, (lo / exposure, hi / exposure), level)
+
+
+@dataclass
+class PoissonFit:
+    """A Poisson GLM with log link: log μ = log(exposure) + X·β."""
+
+    beta: np.ndarray
+    cov: np.ndarray
+    deviance: float
+    pearson: float
+    df: int
+
+
+def poisson_glm(counts: np.ndarray, exposure: np.ndarray, design: np.ndarray, iterations: int = 100) -> PoissonFit:
+    """Fit a Poisson regression with an exposure offset by iteratively reweighted least squares."""
+    y = np.asarray(counts, float)
+    offset = np.log(np.asarray(exposure, float))
+    x = np.asarray(design, float)
+    beta = np.zeros(x.shape[1])
+    beta[0] = math.log(max(y.sum(), 0.5) / np.exp(offset).sum())
+    for _ in range(iterations):
+        eta = offset + x @ beta
+        mu = np.exp(eta)
+        z = eta - offset + (y - mu) / mu
+        w = mu
+        xtw = x.T * w
+        new = np.linalg.solve(xtw @ x, xtw @ z)
+        if np.max(np.abs(new - beta)) < 1e-10:
+            beta = new
+            break
+        beta = new
+    mu = np.exp(offset + x @ beta)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dev = 2 * np.sum(np.where(y > 0, y * np.log(y / mu), 0.0) - (y - mu))
+    cov = np.linalg.inv((x.T * mu) @ x)
+    pearson = float(np.sum((y - mu) ** 2 / mu))
+    return PoissonFit(beta, cov, float(dev), pearson, int(len(y) - x.shape[1]))
+
+
+@dataclass
+class TrendTest:
+    """Test of a constant arrival rate (linear growth of the cumulative count) from ≥ 3 epochs."""
+
+    slope: float
+    slope_ci: tuple[float, float]
+    lr_statistic: float
+    p_value: float
+    dispersion: float
+    p_dispersion: float
+    linear: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"log_rate_slope_per_year": self.slope, "slope_ci": list(self.slope_ci),
+                "lr_statistic": self.lr_statistic, "p_value": self.p_value, "dispersion": self.dispersion,
+                "p_dispersion": self.p_dispersion, "linear_growth_consistent": self.linear,
+                "test": "likelihood ratio, Poisson regression of new defects per interval on time (log link, "
+                        "exposure offset): slope 0 = constant rate = linear growth"}
+
+
+def trend_test(new_counts: Sequence[int], times: Sequence[float], area_mp: float, level: float = LEVEL) -> TrendTest | None:
+    """LR test of slope = 0 in log(rate) = b₀ + b₁·(interval midpoint − mean); None with < 2 intervals."""
+    counts = np.asarray(new_counts, float)
+    t = np.asarray(times, float)
+    if len(counts) < 2:
+        return None
+    exposure = area_mp * np.diff(t)
+    mid = (t[1:] + t[:-1]) / 2
+    mid = mid - np.average(mid, weights=exposure)
+    z = stats.norm.ppf(0.5 + level / 2)
+    if counts.sum() == 0:
+        return TrendTest(0.0, (-math.inf, math.inf), 0.0, 1.0, float("nan"), 1.0, True)
+    full = poisson_glm(counts, exposure, np.column_stack([np.ones_like(mid), mid]))
+    null = poisson_glm(counts, exposure, np.ones((len(counts), 1)))
+    lr = max(0.0, null.deviance - full.deviance)
+    p = float(stats.chi2.sf(lr, 1))
+    se = math.sqrt(full.cov[1, 1])
+    disp = null.pearson / max(null.df, 1)
+    p_disp = float(stats.chi2.sf(null.pearson, null.df)) if null.df > 0 else 1.0
+    slope = float(full.beta[1])
+    return TrendTest(slope, (slope - z * se, slope + z * se), lr, p, disp, p_disp, p >= 1 - level)
+
+
+# =========================================================================== epochs and catalogue
+@dataclass
+class Epoch:
+    """One image set of the device: its capture date (decimal year) and what was detected."""
+
+    date: float
+    detection: DetectionResult
+    label: str = ""
+    device: str | None = None
+
+
+@dataclass
+class CatalogueEntry:
+    """A defect seen in the reference sets: site, kind, amplitude and the interval its onset lies in."""
+
+    x: int
+    y: int
+    kind: int
+    amplitude: float
+    first_epoch: int
+    onset_lo: float | None
+    onset_hi: float
+    seen: int
+    possible: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"x": self.x, "y": self.y, "kind": KIND_NAMES[self.kind], "amplitude": self.amplitude,
+                "first_epoch": self.first_epoch, "onset_lo": self.onset_lo, "onset_hi": self.onset_hi,
+                "seen": self.seen, "possible": self.possible}
+
+    @classmethod
+    def from_dict(cls, obj: dict[str, Any]) -> "CatalogueEntry":
+        return cls(int(obj["x"]), int(obj["y"]), KIND_CODES[obj["kind"]], float(obj["amplitude"]),
+                   int(obj["first_epoch"]), None if obj.get("onset_lo") is None else float(obj["onset_lo"]),
+                   float(obj["onset_hi"]), int(obj.get("seen", 1)), int(obj.get("possible", 1)))
+
+
+def _z_at(detection: DetectionResult, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """z of d̂ at the given sites (−inf where the epoch kept no d̂ image or the site is outside its region)."""
+    if detection.d_hat is None:
+        return np.full(len(xs), -np.inf)
+    z = np.full(len(xs), -np.inf)
+    for fit_index, fit in enumerate(detection.fits):
+        if detection.cfa:
+            sel = ((ys % 2) * 2 + (xs % 2)) == fit_index
+        else:
+            sel = np.ones(len(xs), bool)
+        z[sel] = (detection.d_hat[ys[sel], xs[sel]] - fit.center) / fit.scale
+    if detection.mask is not None:
+        z[~detection.mask[ys, xs]] = -np.inf
+    return z
+
+
+def first_epochs(epochs: Sequence[Epoch], kind: int, z_recheck: float = Z_RECHECK) -> dict[tuple[int, int], int]:
+    """For every site detected (as ``kind``) at some epoch, the first epoch at which it is present.
+
+    A site first detected at epoch i counts as present at an earlier epoch j
+    when its z there exceeds ``z_recheck`` (for stuck sites: when it was
+    constant there), so noise around τ does not make old defects look new.
+    """
+    first: dict[tuple[int, int], int] = {}
+    for i, ep in enumerate(epochs):
+        for site in ep.detection.sites(kind):
+            if site not in first:
+                first[site] = i
+    if not first:
+        return first
+    sites = np.array(list(first), dtype=np.int64)
+    start = np.array(list(first.values()))
+    for j, ep in enumerate(epochs):
+        later = start > j
+        if not later.any():
+            continue
+        xs, ys = sites[later, 0], sites[later, 1]
+        if kind == PARTIAL:
+            present = _z_at(ep.detection, xs, ys) > z_recheck
+        else:
+            present = np.array([s in ep.detection.sites(STUCK) for s in zip(xs.tolist(), ys.tolist())], bool)
+        idx = np.nonzero(later)[0][present]
+        start[idx] = j
+    return {tuple(s): int(e) for s, e in zip(sites.tolist(), start)}
+
+
+def presence_matrix(epochs: Sequence[Epoch], sites: list[tuple[int, int]], kind: int,
+                    z_recheck: float = Z_RECHECK) -> np.ndarray:
+    """(epochs × sites) booleans: the site shows the defect at that epoch (detected, or z > z_recheck; stuck: constant)."""
+    out = np.zeros((len(epochs), len(sites)), bool)
+    if not sites:
+        return out
+    arr = np.array(sites, dtype=np.int64)
+    for j, ep in enumerate(epochs):
+        found = ep.detection.sites(kind)
+        out[j] = [s in found for s in sites]
+        if kind == PARTIAL:
+            out[j] |= _z_at(ep.detection, arr[:, 0], arr[:, 1]) > z_recheck
+    return out
+
+
+def build_catalogue(epochs: Sequence[Epoch], z_recheck: float = Z_RECHECK) -> list[CatalogueEntry]:
+    """The defect catalogue with onset intervals (t_{e−1}, t_e] for a defect first present at epoch e.
+
+    *Once defective, always defective*: a site is kept only if it still shows
+    at the last epoch and in at least half of the epochs from its first on;
+    the others were false alarms (or defects lost under the threshold).
+    """
+    dates = [ep.date for ep in epochs]
+    by_site: dict[tuple[int, int], CatalogueEntry] = {}
+    amplitudes = [ep.detection.amplitudes() for ep in epochs]
+    for kind in (STUCK, PARTIAL):
+        firsts = first_epochs(epochs, kind, z_recheck)
+        sites = list(firsts)
+        shows = presence_matrix(epochs, sites, kind, z_recheck)
+        for col, site in enumerate(sites):
+            e = firsts[site]
+            later = shows[e:, col]
+            if not later[-1] or later.sum() < 0.5 * len(later):
+                continue
+            if site in by_site:
+                continue  # stuck overrides partially stuck
+            seen = sum(site in ep.detection.sites(kind) for ep in epochs[e:])
+            amps = [amplitudes[i][site] for i, ep in enumerate(epochs) if site in ep.detection.sites(kind)]
+            by_site[site] = CatalogueEntry(site[0], site[1], kind, float(np.median(amps)), e + 1,
+                                           None if e == 0 else dates[e - 1], dates[e], seen, len(epochs) - e)
+    return sorted(by_site.values(), key=lambda c: (c.first_epoch, c.y, c.x))
+
+
+# =========================================================================== growth result
+@dataclass
+class KindGrowth:
+    """Per-kind counts and estimates."""
+
+    kind: str
+    counts: list[int]
+    new: list[int]
+    rate: RateEstimate
+    trend: TrendTest | None
+    chapman: ChapmanEstimate | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"counts": self.counts, "new_per_interval": self.new, "rate": self.rate.to_dict(),
+                "trend": self.trend.to_dict() if self.trend else None,
+                "chapman": self.chapman.to_dict() if self.chapman else None}
+
+
+@dataclass
+class GrowthResult:
+    """Everything estimated from ≥ 2 epochs of one device."""
+
+    dates: list[float]
+    labels: list[str]
+    shape: tuple[int, int]
+    area_mp: float
+    threshold: dict[str, Any]
+    partial: KindGrowth
+    stuck: KindGrowth
+    paper: PaperEstimate
+    catalogue: list[CatalogueEntry]
+    device: str | None = None
+    detection_settings: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    near_last: list[tuple[int, int]] = field(default_factory=list)
+
+    @property
+    def span(self) -> float:
+        return self.dates[-1] - self.dates[0]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "device": self.device, "epochs": [{"label": lab, "date": d, "partial": p, "stuck": s}
+                                              for lab, d, p, s in zip(self.labels, self.dates, self.partial.counts,
+                                                                      self.stuck.counts)],
+            "shape": list(self.shape), "area_mp": self.area_mp, "threshold": self.threshold,
+            "rate_partial": self.partial.rate.rate, "rate_partial_ci": list(self.partial.rate.ci),
+            "rate_stuck": self.stuck.rate.rate, "rate_stuck_ci": list(self.stuck.rate.ci),
+            "rate_units": "defects/MP/year", "level": self.partial.rate.level,
+            "partial": self.partial.to_dict(), "stuck": self.stuck.to_dict(), "paper": self.paper.to_dict(),
+            "catalogue_size": len(self.catalogue), "warnings": self.warnings,
+        }
+
+    def model(self) -> "GrowthModel":
+        """The part needed later for dating, as a :class:`GrowthModel`."""
+        return GrowthModel(device=self.device, shape=self.shape, area_mp=self.area_mp, dates=list(self.dates),
+                           labels=list(self.labels), counts={"partial": self.partial.counts, "stuck": self.stuck.counts},
+                           new={"partial": self.partial.new, "stuck": self.stuck.new},
+                           rates={"partial": self.partial.rate.to_dict(), "stuck": self.stuck.rate.to_dict()},
+                           threshold=self.threshold, detection=self.detection_settings, catalogue=self.catalogue,
+                           near_last=list(self.near_last))
+
+
+def estimate_growth(epochs: Sequence[Epoch], level: float = LEVEL, z_recheck: float = Z_RECHECK) -> GrowthResult:
+    """Growth estimates from ≥ 2 epochs of one device (detections made with one setting).
+
+    Raises
+    ------
+    InputError
+        Fewer than two epochs, epochs of different sizes or analysed regions,
+        epochs of different devices, or two epochs at the same date.
+    """
+    if len(epochs) < 2:
+        raise InputError("growth needs at least two image sets taken at different dates")
+    epochs = sorted(epochs, key=lambda e: e.date)
+    check_epochs(epochs)
+    dates = [e.date for e in epochs]
+    area = epochs[0].detection.megapixels
+    kinds = {}
+    for kind in (PARTIAL, STUCK):
+        firsts = first_epochs(epochs, kind, z_recheck)
+        if len(epochs) >= 3:  # a site that no longer shows at the last epoch was no defect
+            sites = list(firsts)
+            keep = presence_matrix(epochs, sites, kind, z_recheck)[-1] if sites else []
+            firsts = {s: e for s, e, k in zip(sites, firsts.values(), keep) if k}
+        new = [sum(1 for e in firsts.values() if e == i) for i in range(1, len(epochs))]
+        counts = [ep.detection.count(kind) for ep in epochs]
+        rate = poisson_rate(sum(new), area * (dates[-1] - dates[0]), KIND_NAMES[kind], level)
+        trend = trend_test(new, dates, area, level) if len(epochs) >= 3 else None
+        a, b = epochs[0].detection.sites(kind), epochs[-1].detection.sites(kind)
+        cr = chapman(len(a), len(b), len(a & b), level) if (a or b) else None
+        kinds[kind] = KindGrowth(KIND_NAMES[kind], counts, new, rate, trend, cr)
+    det = epochs[-1].detection
+    threshold = det.threshold_dict()
+    threshold["tau_per_epoch"] = [ep.detection.tau for ep in epochs]
+    threshold["z_recheck"] = z_recheck
+    warnings = [w for ep in epochs for w in ep.detection.warnings]
+    settings = {"q": det.q, "sigma": det.sigma, "tau": det.tau_given, "mask": det.mask_spec.to_dict(),
+                "stuck_tolerance": det.stuck_tolerance}
+    catalogue = build_catalogue(epochs, z_recheck)
+    return GrowthResult(dates, [e.label for e in epochs], det.shape, area, threshold, kinds[PARTIAL], kinds[STUCK],
+                        paper_estimate(epochs[0].detection, epochs[-1].detection, dates[0], dates[-1]),
+                        catalogue, epochs[0].device, settings, warnings,
+                        near_sites(epochs[-1].detection, {(c.x, c.y) for c in catalogue}, z_recheck))
+
+
+def near_sites(detection: DetectionResult, exclude: set[tuple[int, int]], z_recheck: float = Z_RECHECK,
+               limit: int = 200_000) -> list[tuple[int, int]]:
+    """Sites with z > z_recheck at an epoch that are not in ``exclude`` (the largest ``limit`` by z).
+
+    Kept in the growth model so that a later query does not count a defect
+    that was just under the threshold at the last reference epoch as new.
+    """
+    if detection.d_hat is None:
+        return []
+    from .defects import _lattices
+
+    z = np.full(detection.shape, -np.inf, np.float32)
+    for fit, (_, (sy, sx)) in zip(detection.fits, _lattices(detection.shape, detection.cfa)):
+        z[sy, sx] = (detection.d_hat[sy, sx] - fit.center) / fit.scale
+    if detection.mask is not None:
+        z[~detection.mask] = -np.inf
+    ys, xs = np.nonzero(z > z_recheck)
+    if len(ys) > limit:
+        keep = np.argsort(-z[ys, xs])[:limit]
+        ys, xs = ys[keep], xs[keep]
+    return [(int(x), int(y)) for x, y in zip(xs, ys) if (int(x), int(y)) not in exclude]
+
+
+def check_epochs(epochs: Sequence[Epoch]) -> None:
+    """Refuse epochs that cannot be compared: other sizes, other analysed regions, other devices, equal dates."""
+    ref = epochs[0]
+    for ep in epochs[1:]:
+        if ep.detection.shape != ref.detection.shape:
+            raise InputError(f"{ep.label or 'an epoch'}: images are {ep.detection.shape[1]}×{ep.detection.shape[0]} "
+                             f"but {ref.label or 'the first epoch'} has {ref.detection.shape[1]}×"
+                             f"{ref.detection.shape[0]}; every epoch must come from the same sensor at the same size")
+        if ep.detection.n_analysed != ref.detection.n_analysed:
+            raise InputError(f"{ep.label or 'an epoch'}: the analysed region ({ep.detection.n_analysed} pixels) "
+                             f"differs from {ref.label or 'the first epoch'}'s ({ref.detection.n_analysed}); "
+                             "use one mask for every epoch")
+        if ep.device and ref.device and ep.device != ref.device:
+            raise InputError(f"{ep.label or 'an epoch'} is from device '{ep.device}' but {ref.label or 'the first'} "
+                             f"is from '{ref.device}'; growth needs one device")
+    dates = sorted(ep.date for ep in epochs)
+    if any(b - a <= 0 for a, b in zip(dates, dates[1:])):
+        raise InputError("two epochs have the same capture date; each set must be taken at its own date")
+
+
+def dataset_device(ds: Any) -> str | None:
+    """The one device a dataset comes from (manifest 'device', else EXIF make/model/serial), or None if unknown.
+
+    Raises
+    ------
+    InputError
+        If the set mixes devices.
+    """
+    names = {f.device for f in ds.frames if f.device}
+    if not names:
+        info = ds.frames[0].info()
+        parts = [p for p in (info.make, info.model, info.serial) if p]
+        others = set()
+        for frame in ds.frames[1:]:
+            i2 = frame.info()
+            others.add(tuple(p for p in (i2.make, i2.model, i2.serial) if p))
+        if others and others != {tuple(parts)}:
+            raise InputError(f"{ds.root}: the images come from several cameras (EXIF make/model/serial differ); "
+                             "an epoch must be one device")
+        return " ".join(parts) or None
+    if len(names) > 1:
+        raise InputError(f"{ds.root}: the manifest names several devices ({', '.join(sorted(names))}); "
+                         "an epoch must be one device")
+    return names.pop()
+
+
+def epochs_from_datasets(datasets: Sequence[Any], q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SIGMA,
+                         tau: float | None = None, mask: MaskSpec | None = None, stuck_tolerance: float = 0.0,
+                         progress: Progress = no_progress) -> list[Epoch]:
+    """Detect defects in each dataset (one epoch each), dated by the median of their 'captured' field."""
+    infos = []
+    for ds in datasets:
+        date = ds.epoch()  # InputError naming 'captured' when missing
+        shape = ds.shape()
+        infos.append((ds, date, shape, dataset_device(ds)))
+    first = infos[0]
+    for ds, _, shape, device in infos[1:]:
+        if shape != first[2]:
+            raise InputError(f"{ds.root}: images are {shape[1]}×{shape[0]} but {first[0].root} has "
+                             f"{first[2][1]}×{first[2][0]}; every epoch must come from the same sensor at the same size")
+        if device and first[3] and device != first[3]:
+            raise InputError(f"{ds.root} is from device '{device}' but {first[0].root} is from '{first[3]}'; "
+                             "growth needs sets from one device")
+    epochs = []
+    for ds, date, _, device in infos:
+        det = detect_dataset(ds, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance,
+                             progress=progress)
+        epochs.append(Epoch(date, det, str(ds.root), device))
+    return epochs
+
+
+# =========================================================================== the saved model
+@dataclass
+class GrowthModel:
+    """What dating needs from the reference epochs: rates, counts, dates, detection settings and the catalogue.
+
+    ``near_last`` lists the sites just under the threshold (z > 3) at the last
+    epoch, so a later query does not count them as new defects.
+    """
+
+    device: str | None
+    shape: tuple[int, int]
+    area_mp: float
+    dates: list[float]
+    labels: list[str]
+    counts: dict[str, list[int]]
+    new: dict[str, list[int]]
+    rates: dict[str, dict[str, Any]]
+    threshold: dict[str, Any]
+    detection: dict[str, Any]
+    catalogue: list[CatalogueEntry]
+    near_last: list[tuple[int, int]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": MODEL_FORMAT, "device": self.device, "shape": list(self.shape), "area_mp": self.area_mp,
+                "dates": self.dates, "labels": self.labels, "counts": self.counts, "new": self.new,
+                "rates": self.rates, "threshold": self.threshold, "detection": self.detection,
+                "catalogue": [c.to_dict() for c in self.catalogue],
+                "near_last": [list(site) for site in self.near_last]}
+
+    @classmethod
+    def from_dict(cls, obj: dict[str, Any]) -> "GrowthModel":
+        return cls(obj.get("device"), tuple(obj["shape"]), float(obj["area_mp"]), [float(d) for d in obj["dates"]],
+                   list(obj.get("labels", [""] * len(obj["dates"]))), obj["counts"], obj["new"], obj["rates"],
+                   obj.get("threshold", {}), obj.get("detection", {}),
+                   [CatalogueEntry.from_dict(c) for c in obj.get("catalogue", [])],
+                   [(int(x), int(y)) for x, y in obj.get("near_last", [])])
+
+    def save(self, path: str | os.PathLike, force: bool = False) -> Path:
+        """Write the model as JSON (atomically)."""
+        from .atomic import write_json
+
+        return write_json(path, self.to_dict(), force=force)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "GrowthModel":
+        """Read a model written by :meth:`save`."""
+        path = Path(path)
+        try:
+            obj = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: cannot read the growth model ({exc})") from exc
+        if obj.get("format") != MODEL_FORMAT:
+            raise InputError(f"{path}: not a growth model written by 'forensics defects growth -o' "
+                             f"(format {obj.get('format')!r})")
+        try:
+            return cls.from_dict(obj)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{path}: malformed growth model ({exc})") from exc
+
+    def mask_spec(self) -> MaskSpec:
+        return MaskSpec.from_dict(self.detection.get("mask", {}))
+
+
+# =========================================================================== figures
+def counts_figure(result: GrowthResult):
+    """Cumulative defects per epoch with Garwood 95 % intervals and the constant-rate fit."""
+    from .report import new_figure
+
+    fig, ax = new_figure(6.4, 4.0)
+    t = np.asarray(result.dates)
+    for kg, colour in ((result.partial, "C0"), (result.stuck, "C3")):
+        cum = np.cumsum([kg.counts[0]] + kg.new)
+        if cum.max() == 0:
+            continue
+        ci = np.array([garwood(int(c)) for c in cum])
+        ax.errorbar(t, cum, yerr=[cum - ci[:, 0], ci[:, 1] - cum], fmt="o", color=colour, capsize=3,
+                    label=f"{kg.kind}: cumulative count (Garwood 95 %)")
+        grid = np.linspace(t[0], t[-1], 50)
+        ax.plot(grid, cum[0] + kg.rate.rate * result.area_mp * (grid - t[0]), color=colour, lw=1,
+                label=f"{kg.kind}: {kg.rate.rate:.3g} [{kg.rate.ci[0]:.3g}, {kg.rate.ci[1]:.3g}] /MP/yr")
+        for lo in (kg.rate.ci[0], kg.rate.ci[1]):
+            ax.plot(grid, cum[0] + lo * result.area_mp * (grid - t[0]), color=colour, lw=0.6, ls=":")
+    ax.set_xlabel("capture date (year)")
+    ax.set_ylabel("defects (first seen by each epoch)")
+    ax.legend(fontsize=7)
+    return fig
+
+
+def growth_report(result: GrowthResult, title: str = "Defect growth") -> Any:
+    from .report import Report
+
+    rep = Report(title)
+    th = result.threshold
+    rep.text(f"{len(result.dates)} epochs of {result.shape[1]}×{result.shape[0]} images, analysed region "
+             f"{result.area_mp:.4g} MP, threshold {'σ = %g' % th['sigma'] if th.get('sigma') else 'τ given'} "
+             f"(τ per epoch: {', '.join(f'{v:.4g}' for v in th['tau_per_epoch'])} DN), q = {th['q']}.")
+    for w in result.warnings:
+        rep.text(w, note=True)
+    rows = []
+    for kg in (result.partial, result.stuck):
+        r = kg.rate
+        rows.append([kg.kind, r.count, r.exposure, r.rate, f"[{r.ci[0]:.4g}, {r.ci[1]:.4g}]"])
+    rep.table(["kind", "new defects", "MP·years", "rate (/MP/yr)", "95 % interval (Garwood)"], rows)
+    p = result.paper
+    rep.table(["paper (eq. 16–20)", "n₁", "n₂", "n_match", "γ", "λ_ps (eq. 17)", "λ_s (eq. 18)", "a_ps (eq. 19)"],
+              [["first vs last epoch", p.n1, p.n2, p.n_match, p.gamma, p.lambda_ps, p.lambda_s, p.a_ps]])
+    if result.partial.chapman:
+        c = result.partial.chapman
+        rep.text(f"Capture–recapture (Chapman), partially stuck: N̂ = {c.n_hat:.1f} defects at the last epoch "
+                 f"(95 % [{c.ci[0]:.1f}, {c.ci[1]:.1f}]), detection efficiency n₂/N̂ = {c.efficiency:.2f}.")
+    for kg in (result.partial, result.stuck):
+        if kg.trend:
+            tr = kg.trend
+            rep.text(f"{kg.kind}: test of linear growth (constant rate): LR = {tr.lr_statistic:.2f}, "
+                     f"p = {tr.p_value:.3g} → {'consistent' if tr.linear else 'rejected'}; dispersion "
+                     f"{tr.dispersion:.2f}.")
+    rep.figure(counts_figure(result), "growth_counts", "Cumulative defects against capture date with exact "
+               "95 % intervals; lines: constant-rate fit and the rate's interval.")
+    return rep

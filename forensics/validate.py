@@ -1,0 +1,459 @@
+"""Validation on simulated ground truth: how far the defect estimators can be trusted.
+
+Every trial realises a new device from a preset of the reference paper
+(:func:`forensics.presets.preset`, 16-bit by default, plus read noise), with
+its rates multiplied so that a small frame collects enough defects, images it
+through the sensor model (:meth:`~forensics.model.Device.expose`) at each
+epoch with K scenes drawn from a pool of scenes, and runs the real pipeline
+on the frames: streaming stack statistics → :func:`forensics.defects.detect`
+→ :func:`forensics.growth.estimate_growth` → :mod:`forensics.dating`.  Nothing
+is shortcut; only the scenes are shared between trials (a pool generated once
+per run), which is why trials are cheap enough for a ≥ 400-trial sweep.
+
+``defects`` trials (two epochs each) measure detection recall (true defects
+with amplitude ≥ ``amp_sigma``·σ of d̂ found), precision (detections that are
+true defects, of any amplitude), and the bias, RMSE and coverage of the
+partially-stuck rate interval.  The truth for the rate is the rate of
+defects above the threshold used: λ·P(amplitude > τ − centre) = λ·(1 −
+(τ − centre)/a_ps) for the uniform amplitudes of the model — a rate only means
+something with its threshold.  The paper's eq. 17 is scored against the same
+truth.
+
+``dating`` trials measure (a) the coverage, bias and RMSE of set dating: three
+reference epochs and a query set at a random date up to one reference span
+after the last epoch (or, with ``within`` queries, inside the span); (b)
+single-image dating: references every year over 12 years with the model's
+*deterministic* counting (one new defect per year, onset uniform within the
+year), a query image at a random date, and whether the maximum-likelihood
+interval is the true one; accuracy is reported for the trials whose catalogue
+knows ≥ 10 defects with distinct onset intervals (the acceptance condition),
+and for all trials.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from .defects import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect
+from .effects import ReadNoise
+from .errors import InputError
+from .growth import Epoch, estimate_growth
+from .model import PARTIAL, STUCK, Device, SensorModel
+from .presets import PRESETS, preset
+from .progress import Progress, no_progress
+from .scenes import scene
+from .stack import StackAccumulator
+
+NOMINAL = 0.95
+ACCEPT_COVERAGE = (0.92, 0.98)
+
+
+@dataclass
+class ValidationSettings:
+    """What every trial simulates."""
+
+    sensor: str = "F"
+    shape: tuple[int, int] = (128, 128)
+    bit_depth: int = 16
+    read_noise: float = 40.0
+    images: int = 50
+    q: int = DEFAULT_Q
+    sigma: float = DEFAULT_SIGMA
+    mask: str = "all"
+    amp_sigma: float = 6.0
+    target_new: float = 40.0
+    span: float = 8.0
+    t0: float = 2000.0
+    pool: int = 256
+    dating_years: int = 15
+    dating_images: int = 20
+    scenes: str = "smooth"
+    stuck_tolerance_noise: float = 12.0
+
+    @property
+    def stuck_tolerance(self) -> float:
+        """Tolerance of the stuck test: the model adds read noise after the stuck override, so a stuck pixel
+        varies by ~4.5σ over 50 frames; 12σ leaves a wide margin while scene-lit pixels vary by thousands of DN."""
+        return self.stuck_tolerance_noise * self.read_noise
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "shape": list(self.shape), "stuck_tolerance": self.stuck_tolerance}
+
+    def rate_scale(self) -> float:
+        """Rate multiplier giving about ``target_new`` partially-stuck (or stuck) arrivals per span."""
+        lam_ps, lam_s, _ = PRESETS[self.sensor.upper()]
+        lam = lam_ps or lam_s
+        mp = self.shape[0] * self.shape[1] / 1e6
+        return self.target_new / (lam * mp * self.span)
+
+
+def scene_pool(settings: ValidationSettings, rng: np.random.Generator) -> list[np.ndarray]:
+    """The scenes (incident light in DN) the trials draw their frames from.
+
+    ``settings.scenes``: ``'smooth'`` (pink textures low-passed by a Gaussian of
+    4 px: the uniformly lit, low-texture regions the paper relies on, e.g. skin),
+    or a kind of :func:`forensics.scenes.scene` (``'mixed'``, ``'photo'``, ``'texture'``).
+    """
+    from scipy import ndimage
+
+    full = np.float32(2.0**settings.bit_depth - 1)
+    out = []
+    for _ in range(settings.pool):
+        if settings.scenes == "smooth":
+            img = ndimage.gaussian_filter(scene(settings.shape, rng, 1, "texture"), 4.0, mode="reflect")
+        else:
+            img = scene(settings.shape, rng, 1, settings.scenes)
+        out.append(np.asarray(img, np.float32) * full)
+    return out
+
+
+def pool_scene(pool: list[np.ndarray], index: int, rng: np.random.Generator) -> np.ndarray:
+    """Scene ``index`` of the pool, randomly flipped (so epochs rarely repeat a scene exactly)."""
+    img = pool[index]
+    if rng.random() < 0.5:
+        img = img[::-1]
+    if rng.random() < 0.5:
+        img = img[:, ::-1]
+    return img
+
+
+def simulated_model(settings: ValidationSettings, counting: str = "poisson", rate_scale: float | None = None) -> SensorModel:
+    """The preset at the settings' size and bit depth, rates scaled, plus read noise."""
+    model = preset(settings.sensor, settings.shape, bit_depth=settings.bit_depth, t0=settings.t0, counting=counting,
+                   rate_scale=settings.rate_scale() if rate_scale is None else rate_scale)
+    return model.with_effects(ReadNoise(settings.read_noise))
+
+
+def image_epoch(device: Device, time: float, k: int, pool: list[np.ndarray], rng: np.random.Generator,
+                settings: ValidationSettings) -> DetectionResult:
+    """K frames of the device at ``time`` (scenes from the pool), streamed into a detection."""
+    acc = StackAccumulator()
+    ctx = device.context(time)
+    for i in rng.choice(len(pool), size=k, replace=k > len(pool)):
+        acc.add(device.expose(pool_scene(pool, int(i), rng), ctx, rng))
+    mask = MaskSpec("all") if settings.mask == "all" else MaskSpec(settings.mask)
+    return detect(acc.result(), q=settings.q, sigma=settings.sigma, mask=mask, threads=1,
+                  full_scale=2.0**settings.bit_depth - 1, stuck_tolerance=settings.stuck_tolerance)
+
+
+# =========================================================================== summaries
+@dataclass
+class Metric:
+    """One validated quantity over the trials."""
+
+    name: str
+    n: int
+    value: float
+    ci: tuple[float, float] | None = None
+    target: str = ""
+    passed: bool | None = None
+    note: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "n": self.n, "value": self.value, "ci": list(self.ci) if self.ci else None,
+                "target": self.target, "passed": self.passed, "note": self.note}
+
+
+def proportion(name: str, hits: int, n: int, lo: float | None = None, hi: float | None = None, note: str = "") -> Metric:
+    """A proportion with its exact 95 % interval, checked against [lo, hi] when given."""
+    from .growth import clopper_pearson
+
+    value = hits / n if n else float("nan")
+    passed = None
+    target = ""
+    if n and (lo is not None or hi is not None):
+        passed = (lo is None or value >= lo) and (hi is None or value <= hi)
+        target = f"[{lo:g}, {hi:g}]" if lo is not None and hi is not None else (f"≥ {lo:g}" if lo is not None else f"≤ {hi:g}")
+    return Metric(name, n, value, clopper_pearson(hits, n) if n else None, target, passed, note)
+
+
+def error_metrics(name: str, estimates: np.ndarray, truths: np.ndarray, unit: str) -> list[Metric]:
+    """Bias (mean error) with its 95 % interval and RMSE, for finite estimates."""
+    est, tru = np.asarray(estimates, float), np.asarray(truths, float)
+    ok = np.isfinite(est) & np.isfinite(tru)
+    err = est[ok] - tru[ok]
+    if not len(err):
+        return []
+    se = err.std(ddof=1) / math.sqrt(len(err)) if len(err) > 1 else float("nan")
+    bias = float(err.mean())
+    return [Metric(f"{name}: bias ({unit})", len(err), bias, (bias - 1.96 * se, bias + 1.96 * se)),
+            Metric(f"{name}: RMSE ({unit})", len(err), float(np.sqrt(np.mean(err**2))))]
+
+
+@dataclass
+class ValidationResult:
+    """Per-trial records and the summary metrics."""
+
+    what: str
+    settings: ValidationSettings
+    trials: int
+    seed: int
+    metrics: list[Metric]
+    records: list[dict[str, Any]] = field(default_factory=list)
+    curves: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def passed(self) -> bool:
+        return all(m.passed for m in self.metrics if m.passed is not None)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"what": self.what, "settings": self.settings.to_dict(), "trials": self.trials, "seed": self.seed,
+                "rate_scale": self.settings.rate_scale(), "metrics": [m.to_dict() for m in self.metrics],
+                "passed": self.passed, "curves": self.curves}
+
+    def table(self) -> list[list[Any]]:
+        rows = []
+        for m in self.metrics:
+            ci = f"[{m.ci[0]:.4g}, {m.ci[1]:.4g}]" if m.ci else ""
+            rows.append([m.name, m.n, f"{m.value:.4g}", ci, m.target,
+                         "" if m.passed is None else ("pass" if m.passed else "FAIL")])
+        return rows
+
+
+# =========================================================================== defects
+def defects_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator) -> dict[str, Any]:
+    """One device, two epochs: detection scores and the growth estimates against the truth."""
+    model = simulated_model(settings)
+    growth = model.effect("growth")
+    t1, t2 = settings.t0 + settings.span, settings.t0 + 2 * settings.span
+    device = model.realize(rng, [t1, t2])
+    epochs = []
+    rec: dict[str, Any] = {"tp_big": 0, "n_big": 0, "tp": 0, "fp": 0, "stuck_tp": 0, "stuck_n": 0,
+                           "amp_sigma": [], "found": []}
+    for t in (t1, t2):
+        det = image_epoch(device, t, settings.images, pool, rng, settings)
+        epochs.append(Epoch(t, det, f"{t:g}"))
+        truth = device.catalogue.effective(t)
+        inside = det.mask[truth.y, truth.x] if det.mask is not None else np.ones(len(truth), bool)
+        truth = truth.select(inside)
+        true_sites = set(zip(truth.x.tolist(), truth.y.tolist()))
+        found = det.sites()
+        part = truth.kind == PARTIAL
+        rel = truth.amplitude[part] / det.fits[0].scale
+        hit = np.array([s in found for s in zip(truth.x[part].tolist(), truth.y[part].tolist())], bool)
+        big = rel >= settings.amp_sigma
+        rec["n_big"] += int(big.sum())
+        rec["tp_big"] += int(hit[big].sum())
+        rec["amp_sigma"] += rel.tolist()
+        rec["found"] += hit.tolist()
+        rec["tp"] += len(found & true_sites)
+        rec["fp"] += len(found - true_sites)
+        st = truth.kind == STUCK
+        rec["stuck_n"] += int(st.sum())
+        rec["stuck_tp"] += sum(s in det.sites(STUCK) for s in zip(truth.x[st].tolist(), truth.y[st].tolist()))
+    result = estimate_growth(epochs)
+    area = epochs[0].detection.megapixels
+    thr = np.mean([ep.detection.fits[0].tau - ep.detection.fits[0].center for ep in epochs])
+    frac = max(0.0, 1.0 - thr / growth.amp_partial) if growth.amp_partial > 0 else 0.0
+    rec.update({"rate_true": growth.rate_partial * frac, "rate": result.partial.rate.rate,
+                "rate_lo": result.partial.rate.ci[0], "rate_hi": result.partial.rate.ci[1],
+                "rate_paper": result.paper.lambda_ps * (result.shape[0] * result.shape[1] / 1e6) / area,
+                "stuck_true": growth.rate_stuck, "stuck_rate": result.stuck.rate.rate,
+                "stuck_lo": result.stuck.rate.ci[0], "stuck_hi": result.stuck.rate.ci[1],
+                "new": result.partial.rate.count, "scale": float(epochs[0].detection.fits[0].scale),
+                "threshold_dn": float(thr)})
+    return rec
+
+
+def validate_defects(settings: ValidationSettings, trials: int, seed: int = 0,
+                     progress: Progress = no_progress) -> ValidationResult:
+    """Run ``trials`` detection-and-growth trials (see the module docstring)."""
+    rng = np.random.default_rng([seed, 1])
+    pool = scene_pool(settings, rng)
+    records = [defects_trial(settings, pool, np.random.default_rng([seed, 2, i]))
+               for i in progress(range(trials), total=trials, desc="validate defects")]
+    return summarise_defects(settings, records, seed)
+
+
+def summarise_defects(settings: ValidationSettings, records: list[dict[str, Any]], seed: int = 0) -> ValidationResult:
+    """Metrics (with acceptance checks) from per-trial records."""
+    n = len(records)
+    tp_big = sum(r["tp_big"] for r in records)
+    n_big = sum(r["n_big"] for r in records)
+    tp = sum(r["tp"] for r in records)
+    fp = sum(r["fp"] for r in records)
+    cover = sum(r["rate_lo"] <= r["rate_true"] <= r["rate_hi"] for r in records)
+    metrics = [
+        proportion(f"detection recall, amplitude ≥ {settings.amp_sigma:g}σ", tp_big, n_big, 0.95,
+                   note=f"{settings.images} images per epoch, {settings.bit_depth}-bit"),
+        proportion("detection precision", tp, tp + fp, 0.95),
+        proportion("partially-stuck rate: coverage of the 95 % interval", cover, n, *ACCEPT_COVERAGE),
+    ]
+    truth = np.array([r["rate_true"] for r in records])
+    metrics += error_metrics("rate (Garwood/first appearances)", np.array([r["rate"] for r in records]), truth,
+                             "defects/MP/yr")
+    metrics += error_metrics("rate (paper eq. 17)", np.array([r["rate_paper"] for r in records]), truth,
+                             "defects/MP/yr")
+    st = [r for r in records if r["stuck_true"] > 0]
+    if st:
+        metrics.append(proportion("stuck recall", sum(r["stuck_tp"] for r in st), sum(r["stuck_n"] for r in st), 0.95))
+        metrics.append(proportion("stuck rate: coverage of the 95 % interval",
+                                  sum(r["stuck_lo"] <= r["stuck_true"] <= r["stuck_hi"] for r in st), len(st),
+                                  *ACCEPT_COVERAGE))
+    amp = np.concatenate([np.asarray(r["amp_sigma"], float) for r in records]) if records else np.zeros(0)
+    found = np.concatenate([np.asarray(r["found"], bool) for r in records]) if records else np.zeros(0, bool)
+    edges = np.arange(0.0, 16.01, 1.0)
+    curve = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        sel = (amp >= a) & (amp < b)
+        curve.append([float((a + b) / 2), int(sel.sum()), float(found[sel].mean()) if sel.any() else None])
+    slim = [{k: v for k, v in r.items() if k not in ("amp_sigma", "found")} for r in records]
+    return ValidationResult("defects", settings, n, seed, metrics, slim,
+                            {"recall_vs_amplitude_sigma": curve,
+                             "coverage": [[r["rate_true"], r["rate_lo"], r["rate_hi"]] for r in records]})
+
+
+# =========================================================================== dating
+def set_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator,
+                     within: bool = False) -> dict[str, Any]:
+    """Three reference epochs over one span, then a query set at a random date; is the date in the interval?"""
+    from .dating import date_set
+
+    t0 = settings.t0
+    refs = [t0 + settings.span * f for f in (1.0, 1.5, 2.0)]
+    tq = float(rng.uniform(refs[0], refs[-1]) if within else rng.uniform(refs[-1], refs[-1] + settings.span))
+    model = simulated_model(settings)
+    device = model.realize(rng, refs + [tq])
+    epochs = [Epoch(t, image_epoch(device, t, settings.images, pool, rng, settings), f"{t:g}") for t in refs]
+    gm = estimate_growth(epochs).model()
+    query = image_epoch(device, tq, settings.images, pool, rng, settings)
+    try:
+        res = date_set(gm, query)
+    except InputError as exc:  # e.g. no growth over the references: no interval at all, counts as a miss
+        return {"t_true": tq, "estimate": math.nan, "lo": math.nan, "hi": math.nan, "covered": False,
+                "position": str(exc), "within": within}
+    lo = -math.inf if res.interval[0] is None else res.interval[0]
+    hi = math.inf if res.interval[1] is None else res.interval[1]
+    return {"t_true": tq, "estimate": res.estimate, "lo": lo, "hi": hi, "covered": bool(lo <= tq <= hi),
+            "position": res.position, "within": within}
+
+
+def image_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator) -> dict[str, Any]:
+    """Yearly references with one new defect per year; a single query image at a random date."""
+    from .dating import date_image
+
+    years = settings.dating_years
+    t0 = settings.t0
+    refs = [t0 + k for k in range(1, years + 1)]
+    mp = settings.shape[0] * settings.shape[1] / 1e6
+    lam_ps, lam_s, _ = PRESETS[settings.sensor.upper()]
+    model = simulated_model(settings, counting="deterministic", rate_scale=1.0 / (mp * (lam_ps + lam_s)))
+    device = model.realize(rng, [t0] + refs)
+    epochs = [Epoch(t, image_epoch(device, t, settings.dating_images, pool, rng, settings), f"{t:g}") for t in refs]
+    gm = estimate_growth(epochs).model()
+    tq = float(rng.uniform(t0, refs[-1]))
+    image = device.expose(pool_scene(pool, int(rng.integers(len(pool))), rng), device.context(tq), rng)
+    truth = device.catalogue
+    onset = {(int(x), int(y)): float(o) for x, y, o in zip(truth.x, truth.y, truth.onset)}
+    groups: dict[int, list[float]] = {}
+    for c in gm.catalogue:  # a catalogue entry that is no true defect never appears: onset +inf
+        groups.setdefault(c.first_epoch, []).append(onset.get((c.x, c.y), math.inf))
+    if not gm.catalogue:
+        return {"t_true": tq, "groups": 0, "correct": False, "distinct": 0, "best": -1, "true": -1}
+    res = date_image(gm, image)
+    ordered = [groups[g] for g in res.groups]
+    # the true interval: how many leading onset groups have all their defects present at the query date
+    true_j = 0
+    while true_j < len(ordered) and all(o <= tq for o in ordered[true_j]):
+        true_j += 1
+    distinct = sum(1 for g in ordered if len(g) == 1 and math.isfinite(g[0]))
+    return {"t_true": tq, "groups": len(res.groups), "distinct": distinct, "best": res.best, "true": true_j,
+            "correct": res.best == true_j, "estimate": res.estimate}
+
+
+def validate_dating(settings: ValidationSettings, trials: int, seed: int = 0, progress: Progress = no_progress,
+                    within_fraction: float = 0.25) -> ValidationResult:
+    """Run ``trials`` set-dating trials and ``trials`` single-image trials."""
+    rng = np.random.default_rng([seed, 3])
+    pool = scene_pool(settings, rng)
+    sets, images = [], []
+    for i in progress(range(trials), total=trials, desc="validate dating"):
+        trial_rng = np.random.default_rng([seed, 4, i])
+        sets.append(set_dating_trial(settings, pool, trial_rng, within=trial_rng.random() < within_fraction))
+        images.append(image_dating_trial(settings, pool, np.random.default_rng([seed, 5, i])))
+    return summarise_dating(settings, sets, images, seed)
+
+
+def summarise_dating(settings: ValidationSettings, sets: list[dict[str, Any]], images: list[dict[str, Any]],
+                     seed: int = 0) -> ValidationResult:
+    n = len(sets)
+    metrics = [proportion("set dating: coverage of the 95 % interval", sum(r["covered"] for r in sets), n,
+                          *ACCEPT_COVERAGE)]
+    after = [r for r in sets if not r["within"]]
+    within = [r for r in sets if r["within"]]
+    if after and within:
+        metrics.append(proportion("  … queries after the last reference", sum(r["covered"] for r in after), len(after)))
+        metrics.append(proportion("  … queries inside the reference span", sum(r["covered"] for r in within),
+                                  len(within)))
+    metrics += error_metrics("set dating", np.array([r["estimate"] for r in sets]),
+                             np.array([r["t_true"] for r in sets]), "years")
+    qualified = [r for r in images if r["distinct"] >= 10]
+    metrics.append(proportion("single-image dating: true interval, ≥ 10 distinct onsets",
+                              sum(r["correct"] for r in qualified), len(qualified), 0.80,
+                              note=f"{len(qualified)} of {len(images)} trials qualify"))
+    metrics.append(proportion("single-image dating: true interval, all trials", sum(r["correct"] for r in images),
+                              len(images)))
+    err = np.array([r["best"] - r["true"] for r in images if r["groups"]])
+    return ValidationResult("dating", settings, n, seed, metrics, sets + images,
+                            {"interval_error_histogram": np.bincount(np.abs(err)).tolist() if len(err) else [],
+                             "set_coverage": [[r["t_true"], r["lo"], r["hi"]] for r in sets]})
+
+
+# =========================================================================== report
+def coverage_figure(result: ValidationResult):
+    """Observed coverage / proportions with exact 95 % intervals, against the acceptance band."""
+    from .report import new_figure
+
+    props = [m for m in result.metrics if m.ci is not None and 0 <= m.value <= 1 and "bias" not in m.name]
+    fig, ax = new_figure(7.0, 0.5 + 0.45 * max(len(props), 1))
+    for i, m in enumerate(props):
+        colour = "C2" if m.passed else ("C3" if m.passed is False else "C0")
+        ax.errorbar([m.value], [i], xerr=[[m.value - m.ci[0]], [m.ci[1] - m.value]], fmt="o", color=colour,
+                    capsize=3)
+    ax.axvspan(*ACCEPT_COVERAGE, color="C2", alpha=0.15, label="coverage acceptance [0.92, 0.98]")
+    ax.axvline(NOMINAL, color="C2", lw=1)
+    ax.set_yticks(range(len(props)))
+    ax.set_yticklabels([m.name for m in props], fontsize=7)
+    ax.set_xlim(min(0.5, min((m.ci[0] for m in props), default=0.5)) - 0.02, 1.01)
+    ax.set_xlabel("proportion over trials (exact 95 % interval)")
+    ax.legend(fontsize=7, loc="lower left")
+    return fig
+
+
+def recall_figure(result: ValidationResult):
+    from .report import new_figure
+
+    curve = result.curves.get("recall_vs_amplitude_sigma", [])
+    fig, ax = new_figure(6.4, 3.6)
+    xs = [c[0] for c in curve if c[2] is not None]
+    ys = [c[2] for c in curve if c[2] is not None]
+    ax.plot(xs, ys, "o-")
+    ax.axvline(result.settings.sigma, color="C3", lw=1, label=f"τ = {result.settings.sigma:g}σ")
+    ax.axvline(result.settings.amp_sigma, color="C2", lw=1, ls="--", label=f"{result.settings.amp_sigma:g}σ")
+    x = np.linspace(0, 16, 200)
+    ax.plot(x, stats.norm.cdf(x - result.settings.sigma), color="0.5", lw=0.8, label="Φ(a/σ − τ/σ)")
+    ax.set_xlabel("defect amplitude / σ of d̂")
+    ax.set_ylabel("recall")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def validation_report(result: ValidationResult) -> Any:
+    from .report import Report
+
+    rep = Report(f"Validation on simulated ground truth: {result.what}")
+    s = result.settings
+    rep.text(f"{result.trials} trials, seed {result.seed}; sensor {s.sensor} ({s.bit_depth}-bit, "
+             f"{s.shape[1]}×{s.shape[0]}, rates ×{s.rate_scale():.4g}, read noise {s.read_noise:g} DN), "
+             f"{s.images} images per epoch, q = {s.q}, τ = {s.sigma:g}σ.")
+    rep.table(["quantity", "trials", "value", "95 % interval", "acceptance", ""], result.table())
+    rep.figure(coverage_figure(result), "coverage", "Coverage and proportions with exact 95 % intervals; green band: "
+               "the acceptance range for interval coverage.")
+    if result.what == "defects":
+        rep.figure(recall_figure(result), "recall", "Detection recall against amplitude in units of σ of d̂, with "
+                   "the normal-model expectation Φ(a/σ − τ/σ).")
+    return rep
