@@ -807,79 +807,12 @@ def dataset_cfa(ds: Any) -> str | None:
     return None
 
 
-class IntegerStackAccumulator:
-    """:class:`~forensics.stack.StackAccumulator` for uint8/uint16 images with exact integer sums.
-
-    The sums of values and of squares are kept in unsigned integers (uint32;
-    uint64 for the squares of 16-bit data), so they are exact and cost a quarter to a half of the float64
-    passes of the general accumulator — which keeps detection at reading
-    speed.  :meth:`result` returns the same :class:`~forensics.stack.StackStats`.
-    """
-
-    def __init__(self) -> None:
-        self.n = 0
-        self._dtype: np.dtype | None = None
-        self._s1 = self._s2 = self._sq = self._min = self._max = None
-
-    @staticmethod
-    def accepts(image: np.ndarray) -> bool:
-        return image.dtype in (np.uint8, np.uint16)
-
-    def add(self, image: np.ndarray, name: str = "image") -> None:
-        if self._dtype is None:
-            self._dtype = image.dtype
-            wide = np.uint16 if image.dtype == np.uint8 else np.uint32
-            self._s1 = np.zeros(image.shape, np.uint32)
-            self._s2 = np.zeros(image.shape, np.uint32 if image.dtype == np.uint8 else np.uint64)
-            self._sq = np.empty(image.shape, wide)
-            self._min, self._max = image.copy(), image.copy()
-        elif image.shape != self._min.shape or image.dtype != self._dtype:
-            raise InputError(f"{name}: {image.dtype} {image.shape} differs from the first image's "
-                             f"{self._dtype} {self._min.shape}; a stack's images must all have one size and type")
-        else:
-            np.minimum(self._min, image, out=self._min)
-            np.maximum(self._max, image, out=self._max)
-        limit = 65_000  # uint32 sums stay exact up to 65,537 images of 16 bits
-        if self.n + 1 >= limit:
-            raise InputError(f"more than {limit - 1} images in one stack; split the set")
-        np.add(self._s1, image, out=self._s1)
-        np.multiply(image, image, out=self._sq, dtype=self._sq.dtype)
-        np.add(self._s2, self._sq, out=self._s2)
-        self.n += 1
-
-    def result(self) -> StackStats:
-        """Mean and unbiased variance (float32), computed in row blocks (no image-sized float64 temporaries)."""
-        if self.n == 0:
-            raise InputError("no images to accumulate")
-        n = self.n
-        mean = np.empty(self._s1.shape, np.float32)
-        var = np.zeros(self._s1.shape, np.float32)
-        rows = max(1, 1_000_000 // max(1, int(np.prod(self._s1.shape[1:]))))
-        for y in range(0, self._s1.shape[0], rows):
-            s1 = self._s1[y:y + rows].astype(np.float64)
-            m = s1 / n
-            mean[y:y + rows] = m
-            if n > 1:
-                v = self._s2[y:y + rows].astype(np.float64)
-                v -= s1 * m
-                v /= n - 1
-                np.maximum(v, 0.0, out=v)
-                var[y:y + rows] = v
-        return StackStats(n, mean, var, self._min.copy(), self._max.copy())
-
-
 def stack_dataset(ds: Any, progress: Progress = no_progress, desc: str = "reading") -> StackStats:
-    """Stream a dataset once into :class:`StackStats` (decoding in a background thread).
-
-    Integer images use :class:`IntegerStackAccumulator` (exact, cheaper); others
-    the general :class:`~forensics.stack.StackAccumulator`.
-    """
-    acc: Any = None
+    """Stream a dataset once into :class:`StackStats` (decoding in a background thread)."""
+    acc = StackAccumulator()
     for frame, image in zip(ds.frames, prefetch(progress(ds.images(), total=len(ds), desc=desc))):
-        if acc is None:
-            acc = IntegerStackAccumulator() if IntegerStackAccumulator.accepts(image) else StackAccumulator()
         acc.add(image, name=str(frame.path))
-    if acc is None:
+    if acc.n == 0:
         raise InputError(f"{ds.root}: no images")
     return acc.result()
 
