@@ -636,11 +636,12 @@ def median_residual(image: np.ndarray, size: int = 3) -> np.ndarray:
     Returns
     -------
     ndarray, float32, (H, W)
-        In the input's units.  Borders use mirrored neighbours.
+        In the input's units.  Borders repeat the edge (scipy's ``mode='reflect'``).
     """
     if size < 3 or size % 2 == 0:
         raise InputError(f"size={size}: the median window must be odd and at least 3")
+    from .filters import median_filter
+
     y = to_grey(image)
-    med = ndimage.median_filter(y, size=size, mode="mirror")
-    y -= med
+    y -= median_filter(y, size)
     return y

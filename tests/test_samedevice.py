@@ -271,7 +271,7 @@ def test_median_fingerprint_builder_matches_the_batch_formula():
     den = np.zeros((64, 80))
     for img in images:
         y = img.astype(np.float64)
-        w = y - ndimage.median_filter(y, size=3, mode="mirror")
+        w = y - ndimage.median_filter(y, size=3, mode="reflect")
         i = y.copy()
         sat = ndimage.maximum_filter(img == 255, size=3)
         i[sat] = 0
