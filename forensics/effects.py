@@ -212,6 +212,29 @@ class Prnu(Effect):
 
 @register_effect
 @dataclass
+class Dsnu(Effect):
+    """Dark-signal non-uniformity: each pixel adds its own constant offset, light or not (EMVA 1288 DSNU)."""
+
+    name = "dsnu"
+    description = "dark-signal non-uniformity: every pixel adds its own constant offset o ~ N(0, σ_o)"
+    stage = Stage.DARK
+
+    sigma_o: float = param(1.0, "DN", "standard deviation of the per-pixel offsets", null=0.0)
+
+    def realize(self, device: Device, rng: np.random.Generator) -> None:
+        device.state[self.key] = (self.sigma_o * rng.standard_normal(device.model.shape, dtype=np.float32)).astype(np.float32)
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        signal += per_pixel(ctx.device.state[self.key], signal)
+        return signal
+
+    def patterns(self, device: Device) -> list[Pattern]:
+        h, w = device.model.shape
+        return [Pattern("o", device.state[self.key].reshape(-1), np.arange(h * w).reshape(h, w), hyper="sigma_o")]
+
+
+@register_effect
+@dataclass
 class DarkCurrent(Effect):
     """Hot pixels: a dark signal proportional to exposure time, doubling every T_d degrees."""
 

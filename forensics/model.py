@@ -142,14 +142,24 @@ class DefectCatalogue:
 
     def effective(self, time: float) -> "DefectCatalogue":
         """One record per defective site at ``time``: the stuck record where a site has one, else its partial record."""
-        now = self.at(time)
-        if not len(now):
-            return now
-        order = np.lexsort((-now.kind, now.y, now.x))  # per site, stuck first
-        sites = now.y[order] * (now.x.max() + 1) + now.x[order]
-        first = np.ones(len(order), bool)
-        first[1:] = sites[1:] != sites[:-1]
-        return now.select(np.sort(order[first]))
+        return self.select(self.effective_index(time))
+
+    def effective_index(self, time: float) -> np.ndarray:
+        """Indices of the records :meth:`effective` returns (cached per time: sites, kinds and onsets are treated as
+        immutable once a catalogue exists; amplitudes and extras may change)."""
+        cache = self.__dict__.setdefault("_effective_cache", {})
+        key = (float(time), len(self))
+        if key not in cache:
+            idx = np.flatnonzero(self.active(time))
+            if idx.size:
+                x, y, kind = self.x[idx], self.y[idx], self.kind[idx]
+                order = np.lexsort((-kind, y, x))  # per site, stuck first
+                sites = y[order] * (x.max() + 1) + x[order]
+                first = np.ones(len(order), bool)
+                first[1:] = sites[1:] != sites[:-1]
+                idx = idx[np.sort(order[first])]
+            cache[key] = idx
+        return cache[key]
 
     def counts(self, times: Iterable[float], kind: int | None = None) -> np.ndarray:
         """Number of defective sites present at each time (optionally of one kind, after stuck overrides)."""
