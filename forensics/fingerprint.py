@@ -570,12 +570,7 @@ class FingerprintBuilder:
                              f"{self.frame_shape[0]}×{self.frame_shape[1]}{hint}")
         elif image.dtype != self._dtype:
             raise InputError(f"{name}: pixel type {image.dtype} differs from the first image's {self._dtype}")
-        w, i = region_residual_and_intensity(
-            image, self.region, self.sigma,
-            white_level=self.white_level, black_level=self.black_level,
-            saturation_level=self.saturation_level, saturation_dilate=self.saturation_dilate,
-            rolloff=self.rolloff, postprocess=False, workers=self.workers,
-        )
+        w, i = self._residual_and_intensity(image)
         assert self._num is not None and self._den is not None
         self._excluded += int(np.count_nonzero(i == 0))
         w *= i
@@ -583,6 +578,26 @@ class FingerprintBuilder:
         np.multiply(i, i, out=i)
         self._den += i
         self.files.append(str(source) if source is not None else "")
+
+    def _residual_and_intensity(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residual W and intensity weight I of one frame over the region (subclasses change W)."""
+        return region_residual_and_intensity(
+            image, self.region, self.sigma,
+            white_level=self.white_level, black_level=self.black_level,
+            saturation_level=self.saturation_level, saturation_dilate=self.saturation_dilate,
+            rolloff=self.rolloff, postprocess=False, workers=self.workers,
+        )
+
+    def _postprocess(self, raw: np.ndarray) -> np.ndarray:
+        """Zero-mean per CFA sub-lattice and DFT Wiener filtering, piece by piece."""
+        assert self.frame_shape is not None
+        return postprocess(raw, self.region, self.frame_shape, workers=self.workers)
+
+    def _estimator(self) -> dict[str, Any]:
+        """How the estimate was made, for the provenance."""
+        return {"estimator": "K = sum(W*I) / sum(I^2), then zero-mean per CFA sub-lattice and DFT Wiener",
+                "residual": {"wavelet": WAVELET, "levels": LEVELS, "mode": "periodization",
+                             "grey_weights": list(GREY_WEIGHTS), "sigma_8bit": self.sigma}}
 
     def raw_estimate(self) -> np.ndarray:
         """``Σ W·I / Σ I²`` before post-processing (0 where no image contributed), float32."""
@@ -594,9 +609,8 @@ class FingerprintBuilder:
 
     def result(self) -> Fingerprint:
         """The post-processed fingerprint (the builder can keep accumulating afterwards)."""
-        raw = self.raw_estimate()
+        k = self._postprocess(self.raw_estimate())
         assert self.frame_shape is not None
-        k = postprocess(raw, self.region, self.frame_shape, workers=self.workers)
         return Fingerprint(
             K=k,
             region=self.region.spec,
@@ -605,9 +619,7 @@ class FingerprintBuilder:
             n_images=self.n_images,
             frame_shape=self.frame_shape,
             parameters={
-                "estimator": "K = sum(W*I) / sum(I^2), then zero-mean per CFA sub-lattice and DFT Wiener",
-                "residual": {"wavelet": WAVELET, "levels": LEVELS, "mode": "periodization",
-                             "grey_weights": list(GREY_WEIGHTS), "sigma_8bit": self.sigma},
+                **self._estimator(),
                 "dtype": str(self._dtype),
                 "white_level": float(self.white_level) if self.white_level is not None else None,
                 "black_level": _jsonable(self.black_level),

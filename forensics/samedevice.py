@@ -71,7 +71,7 @@ from .fingerprint import (
 )
 from .match import QUERY_SIGMA, prepare_query, score_pair
 from .progress import Progress, no_progress
-from .residual import full_scale, median_residual, to_grey, zero_mean_cfa
+from .residual import median_residual, to_grey, zero_mean_cfa
 from .scores import auc, bootstrap_eer, eer, eer_convex_hull
 
 __all__ = [
@@ -538,104 +538,51 @@ def eer_verdict(
 # ----------------------------------------------------------------------------- median-residual fingerprints
 
 
-class MedianFingerprintBuilder:
+class MedianFingerprintBuilder(FingerprintBuilder):
     """``K = Σ W·I / Σ I²`` with the median residual ``W = y − median_{q×q}(y)``, streamed.
 
     The paper's estimator for the ageing table (it keeps spiky defects).  Intensity
-    ``I`` and the saturation rule are those of :class:`forensics.fingerprint.FingerprintBuilder`;
-    the result is made zero-mean on each CFA sub-lattice (no DFT Wiener step: it is
-    not part of the median variant, and it would only rescale a flat spectrum).
+    ``I``, the saturation rule and the accumulation are those of
+    :class:`forensics.fingerprint.FingerprintBuilder`; only the residual differs, and
+    the result is made zero-mean on each CFA sub-lattice without the DFT Wiener step
+    (not part of the median variant; it would only rescale a flat spectrum).
 
     Parameters
     ----------
     region : str or Region
     size : int
         Median window (3).
-    white_level, black_level, saturation_level, saturation_dilate, rolloff
-        As :class:`forensics.fingerprint.FingerprintBuilder`.
+    **options
+        ``white_level``, ``black_level``, ``saturation_level``, ``saturation_dilate``,
+        ``rolloff`` as :class:`forensics.fingerprint.FingerprintBuilder`.
     """
 
-    def __init__(
-        self,
-        region: str | Region = "full",
-        size: int = 3,
-        *,
-        white_level: float | None = None,
-        black_level: float | Sequence[float] = 0.0,
-        saturation_level: float | None = None,
-        saturation_dilate: int = 1,
-        rolloff: bool = True,
-    ) -> None:
-        self.region = parse_region(region)
+    def __init__(self, region: str | Region = "full", size: int = 3, **options: Any) -> None:
+        super().__init__(region, sigma=0.0, **options)
         self.size = int(size)
-        self.white_level = white_level
-        self.black_level = black_level
-        self.saturation_level = saturation_level
-        self.saturation_dilate = int(saturation_dilate)
-        self.rolloff = bool(rolloff)
-        self.files: list[str] = []
-        self.frame_shape: tuple[int, int] | None = None
-        self._num: np.ndarray | None = None
-        self._den: np.ndarray | None = None
 
-    @property
-    def n_images(self) -> int:
-        """Images added so far."""
-        return len(self.files)
-
-    def add(self, image: np.ndarray, source: str | None = None) -> None:
-        """Add one frame (not modified).
-
-        Raises
-        ------
-        InputError
-            If its size differs from the first frame's.
-        """
-        image = np.asarray(image)
-        name = source or f"image #{self.n_images + 1}"
-        if image.ndim not in (2, 3):
-            raise InputError(f"{name}: array of shape {image.shape} is not an image")
-        shape = (int(image.shape[0]), int(image.shape[1]))
-        if self.frame_shape is None:
-            self.frame_shape = shape
-            if self.white_level is None:
-                self.white_level = full_scale(image.dtype)
-            rshape = self.region.shape(shape)
-            self._num = np.zeros(rshape, np.float64)
-            self._den = np.zeros(rshape, np.float64)
-        elif shape != self.frame_shape:
-            raise InputError(f"{name}: frame is {shape[0]}×{shape[1]}, the others are "
-                             f"{self.frame_shape[0]}×{self.frame_shape[1]}")
-        assert self._num is not None and self._den is not None and self.white_level is not None
+    def _residual_and_intensity(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        assert self.frame_shape is not None and self.white_level is not None
+        shape = self.region.shape(self.frame_shape)
+        w_all, i_all = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
         level = self.white_level if self.saturation_level is None else self.saturation_level
-        for src, dst in zip(self.region.pieces(shape), self.region.mosaic_slices(shape)):
+        for src, dst in zip(self.region.pieces(self.frame_shape), self.region.mosaic_slices(self.frame_shape)):
             piece = image[src]
             grey = to_grey(piece)
-            w = median_residual(grey, self.size)
             sat = saturation_mask(piece, level, self.saturation_dilate)
-            inten = intensity(grey, self.white_level, self.black_level, sat, self.rolloff)
-            w *= inten
-            self._num[dst] += w
-            np.multiply(inten, inten, out=inten)
-            self._den[dst] += inten
-        self.files.append(source or "")
+            w_all[dst] = median_residual(grey, self.size)
+            i_all[dst] = intensity(grey, self.white_level, self.black_level, sat, self.rolloff)
+        return w_all, i_all
 
-    def result(self) -> Fingerprint:
-        """The fingerprint (zero-mean per CFA sub-lattice, piece by piece)."""
-        if self._num is None or self._den is None or self.frame_shape is None:
-            raise UsageError("no images added yet; add at least one image before asking for the fingerprint")
-        k = np.zeros(self._num.shape, np.float32)
-        np.divide(self._num, self._den, out=k, where=self._den > 0, casting="same_kind")
+    def _postprocess(self, raw: np.ndarray) -> np.ndarray:
+        assert self.frame_shape is not None
         for dst in self.region.mosaic_slices(self.frame_shape):
-            k[dst] = zero_mean_cfa(np.ascontiguousarray(k[dst]))
-        return Fingerprint(
-            K=k, region=self.region.spec, sigma=0.0, files=list(self.files), n_images=self.n_images,
-            frame_shape=self.frame_shape,
-            parameters={"estimator": f"K = sum(W*I) / sum(I^2), W = y - median{self.size}x{self.size}(y), "
-                                     "then zero-mean per CFA sub-lattice",
-                        "white_level": float(self.white_level) if self.white_level is not None else None,
-                        "saturation_dilate": self.saturation_dilate, "rolloff": self.rolloff},
-        )
+            raw[dst] = zero_mean_cfa(np.ascontiguousarray(raw[dst]))
+        return raw
+
+    def _estimator(self) -> dict[str, Any]:
+        return {"estimator": f"K = sum(W*I) / sum(I^2), W = y - median{self.size}x{self.size}(y), "
+                             "then zero-mean per CFA sub-lattice"}
 
 
 # ----------------------------------------------------------------------------- ageing table
