@@ -1,0 +1,172 @@
+"""The effect interface used by both the simulator and the model check."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from forensics.effects import Clusters, DarkCurrent, Gain, Growth, Nonlinearity, Prnu, ReadNoise, ShotNoise, describe_effects
+from forensics.errors import UsageError
+from forensics.model import (
+    EFFECTS,
+    PARTIAL,
+    STUCK,
+    Effect,
+    Pattern,
+    SensorModel,
+    Stage,
+    make_effect,
+    param,
+)
+from forensics.presets import preset
+
+CANDIDATES = ("prnu", "dark_current", "gain", "nonlinearity", "shot_noise", "clusters", "accelerating_growth")
+SHAPE = (32, 48)
+
+
+def test_registry_roles_and_names():
+    names = set(EFFECTS)
+    assert set(CANDIDATES) <= names
+    assert {n for n, c in EFFECTS.items() if c.role == "base"} == {"growth", "offset", "stuck", "read_noise"}
+    for name in CANDIDATES:
+        cls = EFFECTS[name]
+        assert cls.role == "candidate"
+        assert cls.null_values(), f"{name} declares no null value"
+        assert cls.n_params() >= 1
+
+
+def test_describe_effects_lists_fields_and_parameters():
+    rows = {r["name"]: r for r in describe_effects()}
+    assert rows["dark_current"]["fields"] == ["exposure_s", "temperature_c"]
+    assert rows["gain"]["fields"] == ["iso"]
+    assert rows["growth"]["fields"] == ["captured"]
+    beta = next(p for p in rows["nonlinearity"]["params"] if p["name"] == "beta")
+    assert beta["null"] == 0.0 and beta["free"] and beta["unit"] == ""
+
+
+@pytest.mark.parametrize("name", ["prnu", "dsnu", "dark_current", "gain", "nonlinearity"])
+def test_null_values_change_nothing(name):
+    """At its null values an effect leaves the mean signal exactly as the base model makes it."""
+    base = preset("B", SHAPE, bit_depth=12, rate_scale=5000.0)
+    times = [0.0, 5.0]
+    effect = make_effect(name).nulled()
+    with_effect = base.with_effects(effect)
+    d0 = base.realize(np.random.default_rng(3), times)
+    d1 = with_effect.realize(np.random.default_rng(3), times)
+    scene = np.full(SHAPE, 800.0, np.float32)
+    ctx0 = d0.context(5.0, exposure_s=1.0, iso=400.0, temperature_c=40.0)
+    ctx1 = d1.context(5.0, exposure_s=1.0, iso=400.0, temperature_c=40.0)
+    np.testing.assert_allclose(d1.mean_signal(scene, ctx1), d0.mean_signal(scene, ctx0), atol=1e-9)
+
+
+def test_noise_effects_declare_their_variance():
+    ctx = SensorModel(SHAPE).realize(np.random.default_rng(0), [0.0]).context(0.0)
+    mean = np.array([0.0, 100.0, 1000.0])
+    assert ReadNoise(sigma=3.0).variance(mean, ctx) == 9.0
+    np.testing.assert_allclose(ShotNoise(g=0.5).variance(mean, ctx), [0.0, 50.0, 500.0])
+    # the simulated variance matches the declared one
+    model = SensorModel((64, 64), bit_depth=16, effects=[ReadNoise(sigma=2.0), ShotNoise(g=0.5)])
+    dev = model.realize(np.random.default_rng(0), [0.0])
+    frames = np.stack([dev.signal(np.full((64, 64), 400.0, np.float32), dev.context(0.0), np.random.default_rng(i))
+                       for i in range(40)])
+    measured = frames.var(axis=0, ddof=1).mean()
+    assert measured == pytest.approx(4.0 + 200.0, rel=0.03)  # 64²·39 df: relative SE ≈ 0.0035
+
+
+def test_patterns_are_views_into_the_device():
+    model = SensorModel(SHAPE, bit_depth=12, effects=[Growth(rate_partial=2e4, amp_partial=100.0), Prnu(sigma_k=0.01),
+                                                       DarkCurrent(rate_max=10.0)], t0=0.0)
+    dev = model.realize(np.random.default_rng(1), [0.0, 10.0])
+    prnu = model.effect("prnu").patterns(dev)[0]
+    assert prnu.pixel_local and prnu.hyper == "sigma_k"
+    prnu.values[:] = 0.0
+    assert np.all(dev.state["prnu"] == 0.0)
+    rate = model.effect("dark_current").patterns(dev)[0]
+    idx = rate.blocks[rate.blocks >= 0]
+    assert len(idx) == np.sum(dev.catalogue.kind == PARTIAL)
+    assert rate.pixel_local
+
+
+def test_expected_arrivals_closed_form_matches_simulation():
+    """Built-in closed forms agree with the Monte-Carlo default (which a user's arrival effect relies on)."""
+    times = np.array([0.0, 2.0, 4.0, 8.0])
+    for effect in (Growth(rate_partial=3e4, rate_stuck=5e3, amp_partial=100.0, amp_stuck=255.0),
+                   Clusters(rate=5e3, mean_size=3.0, spread=1.5, amplitude=100.0),
+                   make_effect("accelerating_growth", theta=2e3, beta=1.7, amplitude=100.0)):
+        model = SensorModel((100, 100), effects=[effect], t0=0.0)
+        dev = model.realize(np.random.default_rng(0), times)
+        threshold = {PARTIAL: 30.0, STUCK: -np.inf}
+        closed = effect.expected_arrivals(dev, times, threshold)
+        generic = Effect.expected_arrivals(effect, dev, times, threshold)  # 64 Monte-Carlo draws
+        for kind in (PARTIAL, STUCK):
+            np.testing.assert_allclose(closed[kind], generic[kind], rtol=0.08, atol=1.0)
+
+
+def test_user_effect_loads_from_a_file(tmp_path):
+    source = '''
+from dataclasses import dataclass
+import numpy as np
+from forensics.model import Effect, Pattern, Stage, param
+
+@dataclass
+class RowOffset(Effect):
+    name = "row_offset"
+    description = "each row adds its own offset"
+    stage = Stage.DARK
+    sigma: float = param(2.0, "DN", "spread of the row offsets", null=0.0)
+
+    def realize(self, device, rng):
+        device.state[self.key] = self.sigma * rng.standard_normal(device.model.shape[0])
+
+    def apply(self, signal, ctx, rng):
+        signal += ctx.device.state[self.key][:, None]
+        return signal
+
+    def patterns(self, device):
+        h, w = device.model.shape
+        return [Pattern("offset", device.state[self.key], np.broadcast_to(np.arange(h)[:, None], (h, w)))]
+'''
+    path = tmp_path / "rows.py"
+    path.write_text(source)
+    effect = make_effect(f"{path}:RowOffset", sigma=5.0)
+    assert effect.key == "row_offset" and effect.null_values() == {"sigma": 0.0}
+    model = SensorModel(SHAPE, bit_depth=12, effects=[effect])
+    dev = model.realize(np.random.default_rng(0), [0.0])
+    out = dev.mean_signal(np.zeros(SHAPE), dev.context(0.0))
+    np.testing.assert_allclose(out[:, 0], dev.state["row_offset"])
+    assert not effect.patterns(dev)[0].pixel_local
+    with pytest.raises(UsageError):
+        make_effect(f"{path}:Nope")
+
+
+def test_simulation_is_unchanged_by_the_checking_interface():
+    """Backward compatibility: the same seed gives the same images and catalogue as before the interface grew."""
+    model = preset("H", (40, 40), bit_depth=8, rate_scale=3000.0).with_effects(Gain(), Nonlinearity(beta=0.05))
+    a = model.realize(np.random.default_rng(5), [0.0, 1.0, 2.0])
+    b = model.realize(np.random.default_rng(5), [0.0, 1.0, 2.0])
+    scene = np.full((40, 40), 100.0, np.float32)
+    img_a = a.expose(scene, a.context(2.0, iso=200.0), np.random.default_rng(1))
+    img_b = b.expose(scene, b.context(2.0, iso=200.0), np.random.default_rng(1))
+    np.testing.assert_array_equal(img_a, img_b)
+    cat = a.catalogue
+    eff = cat.effective(2.0)
+    # the cached effective index equals a fresh computation
+    fresh = dataclasses.replace(cat)
+    assert np.array_equal(fresh.effective(2.0).x, eff.x)
+    assert len(cat.effective(1.0)) <= len(eff)
+
+
+def test_param_metadata_defaults():
+    @dataclasses.dataclass
+    class Toy(Effect):
+        name = "toy"
+        stage = Stage.RESPONSE
+        a: float = param(1.0, "DN", "a thing", null=0.0, free=True, bounds=(0.0, 5.0))
+        b: float = param(2.0)
+
+    assert Toy.free_params() == ["a"]
+    assert Toy.null_values() == {"a": 0.0}
+    assert Toy.bounds("a") == (0.0, 5.0) and Toy.bounds("b") == (-np.inf, np.inf)
+    assert Toy().nulled().a == 0.0 and Toy().nulled().b == 2.0
+    assert isinstance(Pattern("x", np.zeros(3), np.array([[0, 1, 2]])).pixel_local, bool)
