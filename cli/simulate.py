@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import add_output_options, command_parser, emit, info, progress_for
+from .common import add_output_options, command_parser, emit, progress_for
 
 
 def register(sub) -> None:

@@ -92,13 +92,14 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage, optimize, stats
 
 from . import spatial as sp
 from .dataset import Dataset, open_dataset
+from .defects import robust_normal
 from .errors import InputError, UsageError
 from .model import (
     EFFECTS,
@@ -112,6 +113,9 @@ from .model import (
     make_effect,
 )
 from .progress import Progress, no_progress
+
+if TYPE_CHECKING:
+    from .report import Report
 
 CLASSES = ("normal", "partial", "stuck")
 NORMAL, PART, STK = 0, 1, 2
@@ -173,7 +177,7 @@ def scene_estimate(image: np.ndarray, exclude: np.ndarray | None = None, kernel:
         est = ndimage.correlate(filled, kernel, mode="reflect")
         resid = img - est
         keep = resid[~bad]
-        mad = 1.4826 * float(np.median(np.abs(keep - np.median(keep)))) if keep.size else 0.0
+        mad = robust_normal(keep)[1] if keep.size else 0.0
         new_bad = base | (np.abs(resid) > 6.0 * max(mad, 1e-9))
         if np.array_equal(new_bad, bad):
             break
@@ -446,7 +450,7 @@ def detect_defects(meas: Measurements, groups_by_epoch: list[list[int]], common_
         flat = np.where(sxx > 0, slope, 0.0) < -0.5
         constant = ((meas.lo[gids].min(0) == meas.hi[gids].max(0)) | flat) & varies
         inside = dhat[interior]
-        tau = DETECT_Z * 1.4826 * float(np.median(np.abs(inside - np.median(inside))))
+        tau = DETECT_Z * robust_normal(inside)[1] if inside.size else 0.0
         per_epoch.append((dhat, constant, max(tau, 1e-6)))
     taus = [p[2] for p in per_epoch if p is not None]
     common = max(taus) if taus else 0.0
@@ -1195,7 +1199,6 @@ def _same_catalogue(a: DefectCatalogue, b: DefectCatalogue | None) -> bool:
 
 
 def _fit_once(ev: Evidence, effects: list[Effect], max_cycles: int) -> FittedModel:
-    meas = ev.meas
     model = SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects), t0=float(ev.times[0]))
     effects = model.effects
     ev.fitted = None  # type: ignore[attr-defined]
