@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from forensics.dataset import open_dataset
-from forensics.io import read_image, write_image
-from forensics.presets import preset
-from forensics.simulate import age_dataset, make_scenes, parse_years
+from forensics.io.dataset import open_dataset
+from forensics.io.images import read_image, write_image
+from forensics.sensor.presets import preset
+from forensics.sensor.simulate import age_dataset, make_scenes, parse_years
 
 SHAPE = (480, 640)
 

@@ -5,7 +5,7 @@
 Writes (once; reused when present) K = 1000 grey 8-bit PNGs of 640×480 and
 K = 50 grey 16-bit TIFFs (zip) of 6000×4000 (24 MP), then measures in one run,
 alternating, the time to read every image (Dataset.images, decode only) and the
-time of `forensics.defects.detect_dataset` on the same files (streaming stack
+time of `forensics.defects.detection.detect_dataset` on the same files (streaming stack
 statistics with decoding in a background thread, then the q = 9 median, fit
 and thresholds).  Each is measured twice after a warm-up read (files in the
 page cache); the best times and their ratio are printed.
@@ -22,10 +22,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from forensics.dataset import open_dataset, write_manifest  # noqa: E402
-from forensics.defects import MaskSpec, detect_dataset  # noqa: E402
-from forensics.io import write_image  # noqa: E402
-from forensics.scenes import pink_texture  # noqa: E402
+from forensics.io.dataset import open_dataset, write_manifest  # noqa: E402
+from forensics.defects.detection import MaskSpec, detect_dataset  # noqa: E402
+from forensics.io.images import write_image  # noqa: E402
+from forensics.sensor.scenes import pink_texture  # noqa: E402
 
 
 def make_set(folder: Path, n: int, shape: tuple[int, int], bits: int, ext: str) -> None:

@@ -7,7 +7,7 @@ Run::
 Each measurement runs in a fresh child process (``--child``) that generates
 3008×2000 RGB uint8 frames on the fly (smooth shading with random phase and
 exposure × a 1 % PRNU, fresh noise per frame, all in reused buffers) and feeds them
-one by one to :class:`forensics.fingerprint.FingerprintBuilder`.  The child
+one by one to :class:`forensics.prnu.fingerprint.FingerprintBuilder`.  The child
 reports its peak resident set size (``resource.getrusage(...).ru_maxrss``), its
 RSS before the first frame (interpreter, libraries, frame generator) and its time
 per frame.  Target: peak ≤ 0.5 GB and the same for 50 and 200 frames.
@@ -70,7 +70,7 @@ def rss_mb() -> float:
 
 
 def child(mode: str, n: int, workers: int) -> dict:
-    from forensics.fingerprint import FingerprintBuilder, postprocess, region_residual_and_intensity
+    from forensics.prnu.fingerprint import FingerprintBuilder, postprocess, region_residual_and_intensity
 
     gen = frames(n)
     first = next(gen)

@@ -19,7 +19,7 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from forensics.filters import median_filter  # noqa: E402
+from forensics._shared.filters import median_filter  # noqa: E402
 
 
 def mean_like(shape, rng):

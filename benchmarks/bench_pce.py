@@ -1,4 +1,4 @@
-"""Benchmark of PCE on a 6 MP pair (forensics.match.pce) against a plain float64 implementation.
+"""Benchmark of PCE on a 6 MP pair (forensics.prnu.match.pce) against a plain float64 implementation.
 
 Run::
 
@@ -30,8 +30,8 @@ from typing import Callable
 
 import numpy as np
 
-from forensics.fingerprint import Fingerprint
-from forensics.match import _pce_with, _Spectrum, pce, score_query
+from forensics.prnu.fingerprint import Fingerprint
+from forensics.prnu.match import _pce_with, _Spectrum, pce, score_query
 
 SHAPE = (2000, 3008)
 

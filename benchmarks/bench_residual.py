@@ -1,4 +1,4 @@
-"""Benchmark of the PRNU noise residual (forensics.residual.wavelet_residual) on a 6 MP image.
+"""Benchmark of the PRNU noise residual (forensics.prnu.residual.wavelet_residual) on a 6 MP image.
 
 Run::
 
@@ -33,7 +33,7 @@ from scipy import ndimage
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_residual import oracle_residual  # noqa: E402  (the float64 oracle)
 
-from forensics import residual as R  # noqa: E402
+from forensics.prnu import residual as R  # noqa: E402
 
 SHAPE = (2000, 3008)
 

@@ -1,4 +1,4 @@
-"""Benchmark of forensics.scores against plain implementations, in the same run.
+"""Benchmark of forensics.stats.scores against plain implementations, in the same run.
 
 Run::
 
@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from forensics import scores
+from forensics.stats import scores
 
 
 def plain_eer(genuine: np.ndarray, impostor: np.ndarray) -> float:

@@ -37,8 +37,8 @@ PIXEL_EFFECTS = ("prnu", "dark_current", "gain", "nonlinearity", "dsnu")
 
 
 def run_one(job: tuple[str, int]) -> dict:
-    from fixtures.hidden import make_hidden
-    from forensics.check import check
+    from forensics.fixtures.hidden import make_hidden
+    from forensics.check.core import check
 
     effect, seed = job
     started = time.perf_counter()
@@ -85,7 +85,7 @@ def fmt(v: float | None, spec: str = ".3g") -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fixtures.hidden import CANDIDATES, EXTRA
+    from forensics.fixtures.hidden import CANDIDATES, EXTRA
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=10, help="seeds per candidate (default 10)")

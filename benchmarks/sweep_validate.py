@@ -18,7 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from forensics import validate as V  # noqa: E402
+from forensics.validate import trials as V  # noqa: E402
 
 
 def _defects(args):

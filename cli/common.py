@@ -13,7 +13,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from forensics.progress import Progress, choose_progress
+from forensics._shared.progress import Progress, choose_progress
 
 EXIT_OK = 0
 EXIT_USAGE = 2

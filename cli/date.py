@@ -4,8 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import add_output_options, command_parser, emit, info, progress_for, warn
-from .defects import add_detection_options, detection_kwargs
+from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.defects import add_detection_options, detection_kwargs
 
 
 def register(sub) -> None:
@@ -28,12 +28,12 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from forensics.atomic import refuse_existing
-    from forensics.dataset import open_dataset
-    from forensics.dating import date_dataset, date_image, dating_report
-    from forensics.errors import InputError, UsageError
-    from forensics.growth import GrowthModel, epochs_from_datasets, estimate_growth
-    from forensics.io import is_raw, read_image, read_raw
+    from forensics._shared.atomic import refuse_existing
+    from forensics.io.dataset import open_dataset
+    from forensics.defects.dating import date_dataset, date_image, dating_report
+    from forensics._shared.errors import InputError, UsageError
+    from forensics.defects.growth import GrowthModel, epochs_from_datasets, estimate_growth
+    from forensics.io.images import is_raw, read_image, read_raw
 
     query = Path(args.query)
     if not query.exists():

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
 
 
 def add_detection_options(parser: argparse.ArgumentParser) -> None:
@@ -24,7 +24,7 @@ def add_detection_options(parser: argparse.ArgumentParser) -> None:
 
 
 def detection_kwargs(args: argparse.Namespace) -> dict:
-    from forensics.defects import DEFAULT_SIGMA, parse_mask
+    from forensics.defects.detection import DEFAULT_SIGMA, parse_mask
 
     sigma = None if args.tau is not None else (DEFAULT_SIGMA if args.sigma is None else args.sigma)
     return {"q": args.q, "sigma": sigma, "tau": args.tau, "mask": parse_mask(args.mask),
@@ -64,13 +64,13 @@ def register(sub) -> None:
 
 
 def run_detect(args: argparse.Namespace) -> int:
-    from forensics.dataset import open_dataset
-    from forensics.defects import detect_dataset, detection_report
-    from forensics.model import PARTIAL, STUCK
+    from forensics.io.dataset import open_dataset
+    from forensics.defects.detection import detect_dataset, detection_report
+    from forensics.sensor.model import PARTIAL, STUCK
 
     ds = open_dataset(args.set)
     if args.report:
-        from forensics.atomic import refuse_existing
+        from forensics._shared.atomic import refuse_existing
 
         refuse_existing(args.report, args.force)
     result = detect_dataset(ds, progress=progress_for(args), **detection_kwargs(args))
@@ -100,10 +100,10 @@ def run_detect(args: argparse.Namespace) -> int:
 
 
 def run_growth(args: argparse.Namespace) -> int:
-    from forensics.atomic import refuse_existing
-    from forensics.dataset import open_dataset
-    from forensics.errors import UsageError
-    from forensics.growth import epochs_from_datasets, estimate_growth, growth_report
+    from forensics._shared.atomic import refuse_existing
+    from forensics.io.dataset import open_dataset
+    from forensics._shared.errors import UsageError
+    from forensics.defects.growth import epochs_from_datasets, estimate_growth, growth_report
 
     if len(args.sets) < 2:
         raise UsageError("growth needs at least two sets (epochs) of the same device taken at different dates")
@@ -147,7 +147,7 @@ def run_growth(args: argparse.Namespace) -> int:
 
     emit(args, summary, lambda: {**result.to_dict(), "model": args.output})
     if args.report:
-        from forensics.defects import defect_map_figure, histogram_figure
+        from forensics.defects.detection import defect_map_figure, histogram_figure
 
         rep = growth_report(result)
         for i, ep in enumerate(epochs):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import command_parser, emit, info, progress_for
+from forensics.cli.common import command_parser, emit, info, progress_for
 
 
 def register(sub) -> None:

@@ -8,7 +8,7 @@ from typing import Any
 
 from textwrap import fill
 
-from .common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
 
 
 def register(sub) -> None:
@@ -68,9 +68,9 @@ def _shift_range(text: str) -> int | None:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from forensics.atomic import refuse_existing
-    from forensics.dataset import open_dataset
-    from forensics.fingerprint import build_fingerprint, parse_region
+    from forensics._shared.atomic import refuse_existing
+    from forensics.io.dataset import open_dataset
+    from forensics.prnu.fingerprint import build_fingerprint, parse_region
 
     region = parse_region(args.region)
     out = Path(args.output)
@@ -97,10 +97,10 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_match(args: argparse.Namespace) -> int:
-    from forensics.dataset import open_dataset
-    from forensics.errors import UsageError
-    from forensics.fingerprint import Fingerprint
-    from forensics.match import PCE_THRESHOLD, score_matrix
+    from forensics.io.dataset import open_dataset
+    from forensics._shared.errors import UsageError
+    from forensics.prnu.fingerprint import Fingerprint
+    from forensics.prnu.match import PCE_THRESHOLD, score_matrix
 
     fp = Fingerprint.load(args.fingerprint)
     ds = open_dataset(args.set)
@@ -174,7 +174,7 @@ def _match_table(payload: dict[str, Any]) -> str:
 def _match_report(payload: dict[str, Any]):
     import numpy as np
 
-    from forensics.report import Report, new_figure
+    from forensics.report.html import Report, new_figure
 
     rep = Report(f"Fingerprint match: {payload['fingerprint']}")
     rep.text(f"{payload['n_images']} images of {payload['set']}, region {payload['region']}, metric "

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import add_output_options, command_parser, emit
+from forensics.cli.common import add_output_options, command_parser, emit
 
 
 def register(sub) -> None:
@@ -18,8 +18,8 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from forensics.dataset import open_dataset
-    from forensics.describe import summarize_dataset, summarize_file
+    from forensics.io.dataset import open_dataset
+    from forensics.io.describe import summarize_dataset, summarize_file
 
     path = Path(args.path)
     if path.is_file():

@@ -7,9 +7,9 @@ import sys
 import warnings
 
 from forensics import __version__
-from forensics.errors import InputError, UsageError
+from forensics._shared.errors import InputError, UsageError
 
-from .common import EXIT_BAD_INPUT, EXIT_USAGE
+from forensics.cli.common import EXIT_BAD_INPUT, EXIT_USAGE
 
 # Each module defines register(subparsers); order is the order in --help.
 COMMAND_MODULES = ["demo", "simulate", "info", "fingerprint", "same_device", "defects", "date", "validate", "model"]
@@ -27,9 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         try:
-            module = importlib.import_module(f"cli.{name}")
+            module = importlib.import_module(f"forensics.cli.{name}")
         except ModuleNotFoundError as exc:
-            if exc.name == f"cli.{name}":
+            if exc.name == f"forensics.cli.{name}":
                 continue  # command not built yet
             raise
         module.register(sub)

@@ -5,7 +5,7 @@ import argparse
 import math
 from typing import Any
 
-from .common import add_output_options, command_parser, emit, info, progress_for
+from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for
 
 
 def register(sub) -> None:
@@ -41,7 +41,7 @@ def register(sub) -> None:
 
 # ------------------------------------------------------------------------------------------- effects
 def run_effects(args: argparse.Namespace) -> int:
-    from forensics.effects import describe_effects
+    from forensics.sensor.effects import describe_effects
 
     rows = describe_effects()
 
@@ -74,8 +74,8 @@ def run_effects(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------------- check
 def run_check(args: argparse.Namespace) -> int:
-    from forensics.atomic import refuse_existing
-    from forensics.check import check, check_report
+    from forensics._shared.atomic import refuse_existing
+    from forensics.check.core import check, check_report
 
     if args.report:
         refuse_existing(args.report, args.force)
@@ -105,7 +105,7 @@ def _p(v: float | None) -> str:
 
 
 def format_check(result: Any) -> str:
-    """The human summary of a :class:`forensics.check.CheckResult`."""
+    """The human summary of a :class:`forensics.check.core.CheckResult`."""
     d = result.data
     lines = [f"Data: {d['frames']} frames, {d['conditions']} conditions ({d['repeated_conditions']} repeated), "
              f"{len(d['epochs'])} epochs, {d['size'][0]}×{d['size'][1]} px, full scale {d['full_scale']:g} DN, "

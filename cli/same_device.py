@@ -6,7 +6,7 @@ from pathlib import Path
 
 from textwrap import fill
 
-from .common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
 
 
 def register(sub) -> None:
@@ -46,9 +46,9 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from forensics.atomic import refuse_existing
-    from forensics.dataset import open_dataset
-    from forensics.samedevice import same_device
+    from forensics._shared.atomic import refuse_existing
+    from forensics.io.dataset import open_dataset
+    from forensics.prnu.samedevice import same_device
 
     if args.report:
         refuse_existing(args.report, args.force)  # before the work, not after
@@ -83,7 +83,7 @@ def _name(folder: str) -> str:
 
 
 def summary(result) -> str:
-    """The human summary of a :class:`forensics.samedevice.SameDeviceResult`."""
+    """The human summary of a :class:`forensics.prnu.samedevice.SameDeviceResult`."""
     import numpy as np
 
     e = result.eer
@@ -113,8 +113,8 @@ def summary(result) -> str:
 
 
 def _report(result, args: argparse.Namespace):
-    from forensics.report import Report
-    from forensics.samedevice import add_to_report
+    from forensics.report.html import Report
+    from forensics.prnu.samedevice import add_to_report
 
     rep = Report(f"Same device? {result.set_a.plan.name} and {result.set_b.plan.name}")
     rep.preformatted(f"forensics same-device {args.set_a} {args.set_b} --fingerprint-images {args.fingerprint_images} "

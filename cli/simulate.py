@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import add_output_options, command_parser, emit, progress_for
+from forensics.cli.common import add_output_options, command_parser, emit, progress_for
 
 
 def register(sub) -> None:
@@ -42,7 +42,7 @@ def register(sub) -> None:
 
     import importlib.util
 
-    if importlib.util.find_spec("cli.simulate_hidden") is not None:  # added by the model-check work
+    if importlib.util.find_spec("forensics.cli.simulate_hidden") is not None:  # added by the model-check work
         from . import simulate_hidden
 
         simulate_hidden.register(inner)
@@ -61,9 +61,9 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def run_age(args: argparse.Namespace) -> int:
-    from forensics.dataset import open_dataset
-    from forensics.presets import preset
-    from forensics.simulate import age_dataset, parse_years, source_bit_depth
+    from forensics.io.dataset import open_dataset
+    from forensics.sensor.presets import preset
+    from forensics.sensor.simulate import age_dataset, parse_years, source_bit_depth
 
     source = open_dataset(args.src)
     ages = parse_years(args.years)
@@ -88,7 +88,7 @@ def run_age(args: argparse.Namespace) -> int:
 
 
 def run_scenes(args: argparse.Namespace) -> int:
-    from forensics.simulate import make_scenes
+    from forensics.sensor.simulate import make_scenes
 
     if args.count < 1:
         raise SystemExit("forensics simulate scenes: error: --count must be at least 1")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import add_output_options, command_parser, emit, progress_for
+from forensics.cli.common import add_output_options, command_parser, emit, progress_for
 
 
 def register(inner) -> None:
@@ -24,7 +24,7 @@ def register(inner) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fixtures.hidden import make_hidden
+    from forensics.fixtures.hidden import make_hidden
 
     result = make_hidden(args.effect, args.out, seed=args.seed, force=args.force, progress=progress_for(args))
 

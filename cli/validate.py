@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import add_output_options, command_parser, emit, info, progress_for
+from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for
 
 
 def register(sub) -> None:
@@ -31,12 +31,12 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from forensics.atomic import refuse_existing
-    from forensics.errors import UsageError
-    from forensics.presets import PRESETS
-    from forensics.validate import ValidationSettings, validate_dating, validate_defects, validation_report
+    from forensics._shared.atomic import refuse_existing
+    from forensics._shared.errors import UsageError
+    from forensics.sensor.presets import PRESETS
+    from forensics.validate.trials import ValidationSettings, validate_dating, validate_defects, validation_report
 
-    from .simulate import parse_size
+    from forensics.cli.simulate import parse_size
 
     if args.trials < 1:
         raise UsageError("--trials must be at least 1")

@@ -12,7 +12,7 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 @pytest.fixture
 def cli(capsys):
     """Run the ``forensics`` command in-process; returns (exit code, stdout, stderr)."""
-    from cli.main import main
+    from forensics.cli.main import main
 
     def run(*argv: str) -> tuple[int, str, str]:
         try:

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from fixtures.hidden import CANDIDATES, Design, make_hidden
-from forensics import spatial as sp
-from forensics.check import (
+from forensics.fixtures.hidden import CANDIDATES, Design, make_hidden
+from forensics.stats import spatial as sp
+from forensics.check.core import (
     KERNEL,
     KERNEL_VAR,
     _random_effect_lr,
@@ -132,7 +132,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from forensics.model import Effect, Pattern, Stage, param
+from forensics.sensor.model import Effect, Pattern, Stage, param
 
 
 @dataclass

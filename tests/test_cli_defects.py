@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from cli.main import main
-from forensics.presets import preset
-from forensics.simulate import age_dataset, make_scenes
+from forensics.cli.main import main
+from forensics.sensor.presets import preset
+from forensics.sensor.simulate import age_dataset, make_scenes
 
 SHAPE = (96, 128)
 

@@ -5,11 +5,11 @@ import json
 
 import pytest
 
-from cli.main import main
+from forensics.cli.main import main
 
 USER = '''
 from dataclasses import dataclass
-from forensics.model import Effect, Stage, param
+from forensics.sensor.model import Effect, Stage, param
 
 
 @dataclass

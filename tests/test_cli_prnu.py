@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from forensics.demo.prnu import sensor_model, simulated_set
-from forensics.io import write_image
+from forensics.io.images import write_image
 
 SIZE = (128, 128)
 N = 24
@@ -39,7 +39,7 @@ def data(tmp_path_factory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def fingerprint(data) -> Path:
     """A fingerprint of cam1 built through the command."""
-    from cli.main import main
+    from forensics.cli.main import main
 
     path = data["root"] / "cam1.npz"
     assert main(["fingerprint", "build", str(data["cam1"]), "-o", str(path), "--quiet"]) == 0
@@ -52,7 +52,7 @@ def test_build_json(cli_json, data, tmp_path):
     assert out["n_images"] == N and out["region"] == "center:64" and out["shape"] == [64, 64]
     assert out["frame_shape"] == [128, 128] and len(out["files"]) == N
     assert (tmp_path / "fp.npz").is_file()
-    from forensics.fingerprint import Fingerprint
+    from forensics.prnu.fingerprint import Fingerprint
 
     assert Fingerprint.load(tmp_path / "fp.npz").K.shape == (64, 64)
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forensics.dataset import decimal_year, from_decimal_year, open_dataset, parse_captured, write_manifest
-from forensics.errors import InputError
-from forensics.io import write_image
+from forensics.io.dataset import decimal_year, from_decimal_year, open_dataset, parse_captured, write_manifest
+from forensics._shared.errors import InputError
+from forensics.io.images import write_image
 
 
 def _folder(tmp_path, n=4, shape=(8, 10), manifest=None):
@@ -61,7 +61,7 @@ def test_iteration_is_lazy(tmp_path, monkeypatch):
     _folder(tmp_path, n=5)
     ds = open_dataset(tmp_path)
     loaded = []
-    import forensics.dataset as mod
+    import forensics.io.dataset as mod
 
     real = mod.read_image
     monkeypatch.setattr(mod, "read_image", lambda p: loaded.append(p) or real(p))
@@ -72,7 +72,7 @@ def test_iteration_is_lazy(tmp_path, monkeypatch):
 
 
 def test_missing_values_come_from_exif(tmp_path):
-    from forensics.io import write_image as wi
+    from forensics.io.images import write_image as wi
 
     wi(tmp_path / "a.tif", np.zeros((4, 4), np.uint8), metadata={"Exif:DateTimeOriginal": "2010:07:02 12:00:00",
                                                                  "ExposureTime": 0.5})

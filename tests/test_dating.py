@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from forensics.dating import _extrapolate, date_image, date_set
-from forensics.defects import MaskSpec, detect
-from forensics.effects import ReadNoise
-from forensics.errors import InputError
-from forensics.growth import Epoch, estimate_growth
-from forensics.presets import preset
-from forensics.scenes import scene
-from forensics.stack import stack_stats
+from forensics.defects.dating import _extrapolate, date_image, date_set
+from forensics.defects.detection import MaskSpec, detect
+from forensics.sensor.effects import ReadNoise
+from forensics._shared.errors import InputError
+from forensics.defects.growth import Epoch, estimate_growth
+from forensics.sensor.presets import preset
+from forensics.sensor.scenes import scene
+from forensics.io.stack import stack_stats
 
 
 def test_extrapolation_interval_covers_at_nominal_rate():
@@ -90,8 +90,8 @@ def test_date_single_image_picks_the_interval():
 
 def test_single_image_likelihood_is_robust_to_one_outlier():
     """One defect reading absurdly (texture at the site) cannot overturn many consistent ones."""
-    from forensics.dating import defect_log_likelihoods
-    from forensics.growth import CatalogueEntry, GrowthModel
+    from forensics.defects.dating import defect_log_likelihoods
+    from forensics.defects.growth import CatalogueEntry, GrowthModel
 
     cat = [CatalogueEntry(10 + 5 * i, 20, 0, 500.0, i + 1, None if i == 0 else 2000.0 + i, 2001.0 + i, 1, 1)
            for i in range(10)]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import ndimage, stats
 
-from forensics.defects import (
+from forensics.defects.detection import (
     MaskSpec,
     accumulated_histogram,
     centre_mask,
@@ -17,12 +17,12 @@ from forensics.defects import (
     robust_normal,
     texture_mask,
 )
-from forensics.effects import ReadNoise
-from forensics.errors import InputError, UsageError
-from forensics.model import PARTIAL, STUCK
-from forensics.presets import preset
-from forensics.scenes import scene
-from forensics.stack import StackStats, stack_stats
+from forensics.sensor.effects import ReadNoise
+from forensics._shared.errors import InputError, UsageError
+from forensics.sensor.model import PARTIAL, STUCK
+from forensics.sensor.presets import preset
+from forensics.sensor.scenes import scene
+from forensics.io.stack import StackStats, stack_stats
 
 
 # --------------------------------------------------------------------------- median
@@ -129,7 +129,7 @@ def test_parse_mask(tmp_path):
 
 
 def test_mask_image(tmp_path):
-    from forensics.io import write_image
+    from forensics.io.images import write_image
 
     st, offsets, _ = synthetic_stack()
     mask = np.zeros((96, 128), np.uint8)
@@ -252,7 +252,7 @@ def test_median_filter_parallel_processes_match():
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_integer_accumulator_matches_the_float_one(dtype):
     """The exact integer sums agree with float64 sums of the same frames (the float path as the oracle)."""
-    from forensics.stack import StackAccumulator
+    from forensics.io.stack import StackAccumulator
 
     rng = np.random.default_rng(9)
     top = np.iinfo(dtype).max

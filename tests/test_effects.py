@@ -6,9 +6,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from forensics.effects import Clusters, DarkCurrent, Gain, Growth, Nonlinearity, Prnu, ReadNoise, ShotNoise, describe_effects
-from forensics.errors import UsageError
-from forensics.model import (
+from forensics.sensor.effects import Clusters, DarkCurrent, Gain, Growth, Nonlinearity, Prnu, ReadNoise, ShotNoise, describe_effects
+from forensics._shared.errors import UsageError
+from forensics.sensor.model import (
     EFFECTS,
     PARTIAL,
     STUCK,
@@ -19,7 +19,7 @@ from forensics.model import (
     make_effect,
     param,
 )
-from forensics.presets import preset
+from forensics.sensor.presets import preset
 
 CANDIDATES = ("prnu", "dark_current", "gain", "nonlinearity", "shot_noise", "clusters", "accelerating_growth")
 SHAPE = (32, 48)
@@ -107,7 +107,7 @@ def test_user_effect_loads_from_a_file(tmp_path):
     source = '''
 from dataclasses import dataclass
 import numpy as np
-from forensics.model import Effect, Pattern, Stage, param
+from forensics.sensor.model import Effect, Pattern, Stage, param
 
 @dataclass
 class RowOffset(Effect):

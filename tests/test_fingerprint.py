@@ -1,4 +1,4 @@
-"""Tests of forensics.fingerprint: regions, the streaming ML estimator, saturation, persistence."""
+"""Tests of forensics.prnu.fingerprint: regions, the streaming ML estimator, saturation, persistence."""
 from __future__ import annotations
 
 import json
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from forensics.errors import InputError, UsageError
-from forensics.fingerprint import (
+from forensics._shared.errors import InputError, UsageError
+from forensics.prnu.fingerprint import (
     Fingerprint,
     FingerprintBuilder,
     Region,

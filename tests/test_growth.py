@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy import ndimage, stats
 
-from forensics.defects import MaskSpec, detect
-from forensics.effects import ReadNoise
-from forensics.errors import InputError
-from forensics.growth import (
+from forensics.defects.detection import MaskSpec, detect
+from forensics.sensor.effects import ReadNoise
+from forensics._shared.errors import InputError
+from forensics.defects.growth import (
     Epoch,
     GrowthModel,
     chapman,
@@ -23,9 +23,9 @@ from forensics.growth import (
     poisson_glm,
     trend_test,
 )
-from forensics.presets import preset
-from forensics.scenes import scene
-from forensics.stack import stack_stats
+from forensics.sensor.presets import preset
+from forensics.sensor.scenes import scene
+from forensics.io.stack import stack_stats
 
 
 # --------------------------------------------------------------------------- the paper
@@ -72,7 +72,7 @@ def test_clopper_pearson():
 
 
 def test_midp_binomial_is_inside_clopper_pearson():
-    from forensics.growth import midp_binomial
+    from forensics.defects.growth import midp_binomial
 
     for x, n in ((0, 10), (3, 10), (10, 10), (17, 60)):
         lo, hi = midp_binomial(x, n)
@@ -181,7 +181,7 @@ def test_epochs_must_match():
 
 
 def test_datasets_without_dates_or_of_other_sizes(tmp_path):
-    from forensics.simulate import make_scenes
+    from forensics.sensor.simulate import make_scenes
 
     a = make_scenes(tmp_path / "a", 3, (40, 48), 0, start_year=2001.0, device="cam")
     b = make_scenes(tmp_path / "b", 3, (40, 48), 1)  # no 'captured'

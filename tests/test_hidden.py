@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from fixtures.hidden import CANDIDATES, HIDDEN, Design, hidden_model, make_hidden
-from forensics.dataset import open_dataset
-from forensics.errors import UsageError
+from forensics.fixtures.hidden import CANDIDATES, HIDDEN, Design, hidden_model, make_hidden
+from forensics.io.dataset import open_dataset
+from forensics._shared.errors import UsageError
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def test_none_and_user_effects(tmp_path):
     none = make_hidden("none", tmp_path / "none", seed=1)
     assert none.truth["hidden"] is None
     source = tmp_path / "col.py"
-    source.write_text("from dataclasses import dataclass\nfrom forensics.model import Effect, Stage, param\n\n"
+    source.write_text("from dataclasses import dataclass\nfrom forensics.sensor.model import Effect, Stage, param\n\n"
                       "@dataclass\nclass Flat(Effect):\n    name = 'flat_offset'\n    stage = Stage.DARK\n"
                       "    d: float = param(5.0, null=0.0)\n\n"
                       "    def apply(self, signal, ctx, rng):\n        signal += self.d\n        return signal\n")
@@ -91,7 +91,7 @@ def test_same_seed_same_data(tmp_path):
     b = make_hidden("prnu", tmp_path / "b", seed=9, design=Design(ages=(0, 1, 2), shape=(32, 32)))
     fa = sorted(p.name for p in a.out.glob("*.png"))
     assert fa == sorted(p.name for p in b.out.glob("*.png"))
-    from forensics.io import read_image
+    from forensics.io.images import read_image
 
     for name in fa[:5]:
         np.testing.assert_array_equal(read_image(a.out / name), read_image(b.out / name))

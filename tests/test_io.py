@@ -5,9 +5,9 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from fixtures.dng import write_dng
-from forensics.errors import InputError, UsageError
-from forensics.io import read_image, read_info, read_raw, write_image
+from forensics.fixtures.dng import write_dng
+from forensics._shared.errors import InputError, UsageError
+from forensics.io.images import read_image, read_info, read_raw, write_image
 
 
 def _oiio_write(path, image, extra=None):

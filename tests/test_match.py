@@ -1,4 +1,4 @@
-"""Tests of forensics.match: NCC, PCE (zero shift vs search), queries and score matrices."""
+"""Tests of forensics.prnu.match: NCC, PCE (zero shift vs search), queries and score matrices."""
 from __future__ import annotations
 
 import math
@@ -10,9 +10,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy import ndimage, stats
 
-from forensics.errors import InputError, UsageError
-from forensics.fingerprint import Fingerprint, FingerprintBuilder
-from forensics.match import (
+from forensics._shared.errors import InputError, UsageError
+from forensics.prnu.fingerprint import Fingerprint, FingerprintBuilder
+from forensics.prnu.match import (
     PCE_THRESHOLD,
     MatchScore,
     Query,

@@ -12,10 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from forensics.effects import Growth, Offset, Prnu, ReadNoise, Stuck
-from forensics.errors import UsageError
-from forensics.model import PARTIAL, STUCK, DefectCatalogue, SensorModel, make_effect, quantize
-from forensics.presets import PRESETS, preset
+from forensics.sensor.effects import Growth, Offset, Prnu, ReadNoise, Stuck
+from forensics._shared.errors import UsageError
+from forensics.sensor.model import PARTIAL, STUCK, DefectCatalogue, SensorModel, make_effect, quantize
+from forensics.sensor.presets import PRESETS, preset
 
 ALPHA = 1e-3
 
@@ -211,7 +211,7 @@ def test_user_effect_from_file(tmp_path):
     path = tmp_path / "my_effect.py"
     path.write_text(
         "from dataclasses import dataclass\n"
-        "from forensics.model import Effect, Stage, param\n"
+        "from forensics.sensor.model import Effect, Stage, param\n"
         "@dataclass\n"
         "class ColumnOffset(Effect):\n"
         "    name = 'column_offset'\n"

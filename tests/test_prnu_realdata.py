@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from forensics.fingerprint import Fingerprint, FingerprintBuilder
-from forensics.match import PCE_THRESHOLD, score_matrix
+from forensics.prnu.fingerprint import Fingerprint, FingerprintBuilder
+from forensics.prnu.match import PCE_THRESHOLD, score_matrix
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "dresden-nikon"
 REGION = "center:1024"
@@ -38,8 +38,8 @@ def device_of(path: Path) -> str:
 def read(path: Path) -> np.ndarray:
     """Pixels as stored (no EXIF rotation), native dtype."""
     try:
-        from forensics.io import read_image
-    except ImportError:  # pragma: no cover - before forensics.io existed
+        from forensics.io.images import read_image
+    except ImportError:  # pragma: no cover - before forensics.io.images existed
         import OpenImageIO as oiio
 
         return oiio.ImageBuf(str(path)).get_pixels(oiio.UINT8)

@@ -1,4 +1,4 @@
-"""Tests of forensics.residual, against a plain float64 oracle kept here.
+"""Tests of forensics.prnu.residual, against a plain float64 oracle kept here.
 
 The oracle (:func:`oracle_residual`) is the same algorithm written as simply as
 possible: float64, ``pywt.wavedec2``/``waverec2``, ``scipy.ndimage.uniform_filter``
@@ -12,8 +12,8 @@ import pytest
 import pywt
 from scipy import ndimage
 
-from forensics.errors import InputError
-from forensics.residual import (
+from forensics._shared.errors import InputError
+from forensics.prnu.residual import (
     median_residual,
     to_grey,
     wavelet_noise,

@@ -1,6 +1,6 @@
-"""Tests of forensics.samedevice: the paper's same-device protocol on simulated cameras.
+"""Tests of forensics.prnu.samedevice: the paper's same-device protocol on simulated cameras.
 
-Cameras are the sensor model of :mod:`forensics.model` (preset + ``prnu`` +
+Cameras are the sensor model of :mod:`forensics.sensor.model` (preset + ``prnu`` +
 ``read_noise`` + ``shot_noise``) on 256×256 8-bit frames of smooth scenes, rendered
 on demand by :func:`forensics.demo.prnu.simulated_set`.  Counts are far below the
 paper's (50 + 800 images per set) to keep the file at about 15 s; the tolerances
@@ -16,9 +16,9 @@ import pytest
 from scipy import ndimage
 
 from forensics.demo.prnu import sensor_model, simulated_set
-from forensics.errors import InputError, UsageError
-from forensics.model import PARTIAL, STUCK
-from forensics.samedevice import (
+from forensics._shared.errors import InputError, UsageError
+from forensics.sensor.model import PARTIAL, STUCK
+from forensics.prnu.samedevice import (
     ImageSet,
     MedianFingerprintBuilder,
     ageing_table,
@@ -27,7 +27,7 @@ from forensics.samedevice import (
     plan_set,
     same_device,
 )
-from forensics.scores import bootstrap_eer
+from forensics.stats.scores import bootstrap_eer
 
 YEARS = 50.0
 SMALL = dict(fingerprint_images=20, score_images=60, region="full", n_boot=1000)
@@ -279,7 +279,7 @@ def test_median_fingerprint_builder_matches_the_batch_formula():
         den += i * i
     k = np.where(den > 0, num / np.where(den > 0, den, 1), 0)
     k = k.astype(np.float32)
-    from forensics.residual import zero_mean_cfa
+    from forensics.prnu.residual import zero_mean_cfa
 
     np.testing.assert_allclose(builder.result().K, zero_mean_cfa(k), atol=2e-6)
     assert builder.result().n_images == 3
@@ -348,7 +348,7 @@ def test_bad_inputs():
 
 
 def test_sequences_of_arrays_and_paths(tmp_path):
-    from forensics.io import write_image
+    from forensics.io.images import write_image
 
     rng = np.random.default_rng(15)
     images = [rng.integers(50, 200, (32, 32), dtype=np.uint8) for _ in range(4)]

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from forensics.fingerprint import parse_region
-from forensics.samedevice import ImageSet, same_device
+from forensics.prnu.fingerprint import parse_region
+from forensics.prnu.samedevice import ImageSet, same_device
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared/data/dresden-nikon"
 CROP = "center:1024"
@@ -54,7 +54,7 @@ def device_of(path: Path) -> str:
 
 def load_crops(devices: list[str] | None = None, crop: str = CROP) -> dict[str, ImageSet]:
     """Every image (flat and natural) of each device as a centre crop, decoded once, as an ImageSet."""
-    from forensics.io import read_image
+    from forensics.io.images import read_image
 
     region = parse_region(crop)
     paths = sorted((DATA / "flat").glob("*.JPG")) + sorted((DATA / "natural").glob("*.JPG"))

@@ -1,4 +1,4 @@
-"""Tests for forensics.scores: ROC, EER (interpolated and convex hull), AUC, DET, bootstrap.
+"""Tests for forensics.stats.scores: ROC, EER (interpolated and convex hull), AUC, DET, bootstrap.
 
 Tolerances are derived in the comments (binomial standard errors, Monte-Carlo
 errors of means and standard deviations); the oracles are deliberately plain
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from forensics import scores as S
-from forensics.errors import InputError, UsageError
-from forensics.scores import (
+from forensics.stats import scores as S
+from forensics._shared.errors import InputError, UsageError
+from forensics.stats.scores import (
     auc,
     bootstrap_ci,
     bootstrap_eer,

@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from forensics.dataset import open_dataset
-from forensics.errors import InputError
-from forensics.io import write_image
-from forensics.model import STUCK
-from forensics.presets import preset
-from forensics.simulate import age_dataset, make_scenes, parse_years, read_catalogue
+from forensics.io.dataset import open_dataset
+from forensics._shared.errors import InputError
+from forensics.io.images import write_image
+from forensics.sensor.model import STUCK
+from forensics.sensor.presets import preset
+from forensics.sensor.simulate import age_dataset, make_scenes, parse_years, read_catalogue
 
 
 @pytest.fixture

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from forensics.validate import (
+from forensics.validate.trials import (
     ValidationSettings,
     proportion,
     summarise_dating,

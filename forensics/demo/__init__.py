@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..progress import Progress, no_progress
-from ..report import Report
+from forensics._shared.progress import Progress, no_progress
+from forensics.report.html import Report
 
 SECTIONS = ("ageing", "prnu", "defects", "check")
 
@@ -55,7 +55,7 @@ def available_sections() -> list[str]:
 def run_demo(out: str | os.PathLike, seed: int = 0, force: bool = False, progress: Progress = no_progress,
              only: list[str] | None = None) -> DemoResult:
     """Run every available section and write ``out/index.html`` (atomically)."""
-    from ..atomic import refuse_existing
+    from forensics._shared.atomic import refuse_existing
 
     refuse_existing(out, force)
     started = time.perf_counter()

@@ -6,12 +6,12 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from ..dataset import open_dataset
-from ..model import PARTIAL, STUCK
-from ..presets import preset
-from ..progress import Progress
-from ..report import Report, new_figure
-from ..simulate import age_dataset, make_scenes, parse_years, read_catalogue
+from forensics.io.dataset import open_dataset
+from forensics.sensor.model import PARTIAL, STUCK
+from forensics.sensor.presets import preset
+from forensics._shared.progress import Progress
+from forensics.report.html import Report, new_figure
+from forensics.sensor.simulate import age_dataset, make_scenes, parse_years, read_catalogue
 from . import DemoSection
 
 TITLE = "Sensor ageing (the paper's AGEDIMAGESEQUENCE)"

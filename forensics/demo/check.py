@@ -3,9 +3,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..check import Evidence, base_model, check_report, load_measurements, make_effect, run_check
-from ..progress import Progress
-from ..report import Report
+from forensics.check.core import Evidence, base_model, check_report, load_measurements, make_effect, run_check
+from forensics._shared.progress import Progress
+from forensics.report.html import Report
 from . import DemoSection
 
 TITLE = "Model against measurement: find the missing effect, add it, watch the error fall"
@@ -13,8 +13,8 @@ HIDDEN = "dark_current"
 
 
 def run(workdir: Path, seed: int, progress: Progress) -> DemoSection:
-    from fixtures.hidden import HIDDEN as STRENGTHS
-    from fixtures.hidden import make_hidden
+    from forensics.fixtures.hidden import HIDDEN as STRENGTHS
+    from forensics.fixtures.hidden import make_hidden
 
     data = make_hidden(HIDDEN, workdir / "lab", seed=seed, progress=progress)
     meas = load_measurements(data.out, progress=progress)

@@ -5,15 +5,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import open_dataset
-from ..dating import date_dataset, set_dating_figure
-from ..defects import MaskSpec, defect_map_figure, histogram_figure
-from ..growth import epochs_from_datasets, estimate_growth, counts_figure
-from ..model import PARTIAL
-from ..presets import preset
-from ..progress import Progress
-from ..report import Report, new_figure
-from ..simulate import age_dataset, make_scenes, read_catalogue
+from forensics.io.dataset import open_dataset
+from forensics.defects.dating import date_dataset, set_dating_figure
+from forensics.defects.detection import MaskSpec, defect_map_figure, histogram_figure
+from forensics.defects.growth import epochs_from_datasets, estimate_growth, counts_figure
+from forensics.sensor.model import PARTIAL
+from forensics.sensor.presets import preset
+from forensics._shared.progress import Progress
+from forensics.report.html import Report, new_figure
+from forensics.sensor.simulate import age_dataset, make_scenes, read_catalogue
 from . import DemoSection
 
 TITLE = "Sensor defects: detection, growth rate and dating"

@@ -1,6 +1,6 @@
 """Demo section: the same-device test on simulated cameras whose truth is known.
 
-Three comparisons, each with the paper's protocol (:func:`forensics.samedevice.same_device`):
+Three comparisons, each with the paper's protocol (:func:`forensics.prnu.samedevice.same_device`):
 
 1. two devices of one model (independent PRNU) — told apart, EER ≈ 0;
 2. one device, young and after 50 years as the paper's sensor H (amplitude-heavy
@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model import SensorModel, make_effect
-from ..presets import preset
-from ..progress import Progress
-from ..report import Report
-from ..samedevice import ImageSet, SameDeviceResult, add_to_report, same_device
-from ..scenes import pink_texture, scene
+from forensics.sensor.model import SensorModel, make_effect
+from forensics.sensor.presets import preset
+from forensics._shared.progress import Progress
+from forensics.report.html import Report
+from forensics.prnu.samedevice import ImageSet, SameDeviceResult, add_to_report, same_device
+from forensics.sensor.scenes import pink_texture, scene
 from . import DemoSection
 
 TITLE = "Same device? PRNU fingerprints, EER with a bootstrap interval, fingerprint ageing"
@@ -69,14 +69,14 @@ def simulated_set(device, n: int, time: float, seed: int, name: str, *, kind: st
 
     Parameters
     ----------
-    device : forensics.model.Device
+    device : forensics.sensor.model.Device
     n : int
     time : float
         Capture time; defects with an earlier onset are present.
     seed : int
     name : str
     kind : {'smooth', 'texture', 'photo'}
-        Scenes: 1/f³ pink shading, :func:`forensics.scenes.scene` textures (1/f^1.8,
+        Scenes: 1/f³ pink shading, :func:`forensics.sensor.scenes.scene` textures (1/f^1.8,
         harder: the residual keeps more scene), or bundled photographs (slow).
     """
     if kind not in SCENE_KINDS:

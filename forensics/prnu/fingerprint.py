@@ -12,7 +12,7 @@ long sums do not lose precision), whatever the number of images.
 
 Details that follow the reference design (Binghamton camera-fingerprint code):
 
-* ``W`` is the wavelet-stage residual of :func:`forensics.residual.wavelet_residual`
+* ``W`` is the wavelet-stage residual of :func:`forensics.prnu.residual.wavelet_residual`
   at σ = 3 (no per-image zero-mean or DFT Wiener step: those are applied once, to K).
 * ``I`` is the grey intensity minus the black level, with the reference's roll-off
   near full scale (``I`` unchanged up to 252/255 of full scale, then
@@ -54,11 +54,11 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from . import __version__
-from .atomic import atomic_file
-from .errors import InputError, UsageError
-from .progress import Progress, no_progress
-from .residual import (
+from forensics import __version__
+from forensics._shared.atomic import atomic_file
+from forensics._shared.errors import InputError, UsageError
+from forensics._shared.progress import Progress, no_progress
+from forensics.prnu.residual import (
     GREY_WEIGHTS,
     LEVELS,
     WAVELET,
@@ -648,7 +648,7 @@ def build_fingerprint(
     ----------
     images : iterable
         Arrays, or objects with a ``load()`` method returning one and a ``path``
-        attribute (e.g. :class:`forensics.dataset.Frame`).
+        attribute (e.g. :class:`forensics.io.dataset.Frame`).
     region, sigma, **options
         As :class:`FingerprintBuilder`.
     sources : iterable of str, optional

@@ -1,12 +1,12 @@
 """Validation on simulated ground truth: how far the defect estimators can be trusted.
 
 Every trial realises a new device from a preset of the reference paper
-(:func:`forensics.presets.preset`, 16-bit by default, plus read noise), with
+(:func:`forensics.sensor.presets.preset`, 16-bit by default, plus read noise), with
 its rates multiplied so that a small frame collects enough defects, images it
-through the sensor model (:meth:`~forensics.model.Device.expose`) at each
+through the sensor model (:meth:`~forensics.sensor.model.Device.expose`) at each
 epoch with K scenes drawn from a pool of scenes, and runs the real pipeline
-on the frames: streaming stack statistics → :func:`forensics.defects.detect`
-→ :func:`forensics.growth.estimate_growth` → :mod:`forensics.dating`.  Nothing
+on the frames: streaming stack statistics → :func:`forensics.defects.detection.detect`
+→ :func:`forensics.defects.growth.estimate_growth` → :mod:`forensics.defects.dating`.  Nothing
 is shortcut; only the scenes are shared between trials (a pool generated once
 per run), which is why trials are cheap enough for a ≥ 400-trial sweep.
 
@@ -38,15 +38,15 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .defects import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect
-from .effects import ReadNoise
-from .errors import InputError
-from .growth import Epoch, estimate_growth
-from .model import PARTIAL, STUCK, Device, SensorModel
-from .presets import PRESETS, preset
-from .progress import Progress, no_progress
-from .scenes import scene
-from .stack import StackAccumulator
+from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect
+from forensics.sensor.effects import ReadNoise
+from forensics._shared.errors import InputError
+from forensics.defects.growth import Epoch, estimate_growth
+from forensics.sensor.model import PARTIAL, STUCK, Device, SensorModel
+from forensics.sensor.presets import PRESETS, preset
+from forensics._shared.progress import Progress, no_progress
+from forensics.sensor.scenes import scene
+from forensics.io.stack import StackAccumulator
 
 NOMINAL = 0.95
 ACCEPT_COVERAGE = (0.92, 0.98)
@@ -96,7 +96,7 @@ def scene_pool(settings: ValidationSettings, rng: np.random.Generator) -> list[n
 
     ``settings.scenes``: ``'smooth'`` (pink textures low-passed by a Gaussian of
     4 px: the uniformly lit, low-texture regions the paper relies on, e.g. skin),
-    or a kind of :func:`forensics.scenes.scene` (``'mixed'``, ``'photo'``, ``'texture'``).
+    or a kind of :func:`forensics.sensor.scenes.scene` (``'mixed'``, ``'photo'``, ``'texture'``).
     """
     from scipy import ndimage
 
@@ -160,7 +160,7 @@ class Metric:
 
 def proportion(name: str, hits: int, n: int, lo: float | None = None, hi: float | None = None, note: str = "") -> Metric:
     """A proportion with its exact 95 % interval, checked against [lo, hi] when given."""
-    from .growth import clopper_pearson
+    from forensics.defects.growth import clopper_pearson
 
     value = hits / n if n else float("nan")
     passed = None
@@ -311,7 +311,7 @@ def summarise_defects(settings: ValidationSettings, records: list[dict[str, Any]
 def set_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator,
                      within: bool = False) -> dict[str, Any]:
     """Three reference epochs over one span, then a query set at a random date; is the date in the interval?"""
-    from .dating import date_set
+    from forensics.defects.dating import date_set
 
     t0 = settings.t0
     refs = [t0 + settings.span * f for f in (1.0, 1.5, 2.0)]
@@ -334,7 +334,7 @@ def set_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: 
 
 def image_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator) -> dict[str, Any]:
     """Yearly references with one new defect per year; a single query image at a random date."""
-    from .dating import date_image
+    from forensics.defects.dating import date_image
 
     years = settings.dating_years
     t0 = settings.t0
@@ -406,7 +406,7 @@ def summarise_dating(settings: ValidationSettings, sets: list[dict[str, Any]], i
 # =========================================================================== report
 def coverage_figure(result: ValidationResult):
     """Observed coverage / proportions with exact 95 % intervals, against the acceptance band."""
-    from .report import new_figure
+    from forensics.report.html import new_figure
 
     props = [m for m in result.metrics if m.ci is not None and 0 <= m.value <= 1 and "bias" not in m.name]
     fig, ax = new_figure(7.0, 0.5 + 0.45 * max(len(props), 1))
@@ -425,7 +425,7 @@ def coverage_figure(result: ValidationResult):
 
 
 def recall_figure(result: ValidationResult):
-    from .report import new_figure
+    from forensics.report.html import new_figure
 
     curve = result.curves.get("recall_vs_amplitude_sigma", [])
     fig, ax = new_figure(6.4, 3.6)
@@ -443,7 +443,7 @@ def recall_figure(result: ValidationResult):
 
 
 def validation_report(result: ValidationResult) -> Any:
-    from .report import Report
+    from forensics.report.html import Report
 
     rep = Report(f"Validation on simulated ground truth: {result.what}")
     s = result.settings

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from .errors import UsageError
+from forensics._shared.errors import UsageError
 
 #: Largest kernel evaluated by the comparator network; larger ones use scipy.
 NETWORK_MAX_Q = 11

@@ -7,12 +7,12 @@ The test, as the paper runs it (Höller & Uhl's sensor-identification methodolog
    gives at most half of its images to the fingerprint and the rest to scoring, and
    the result carries a warning about the loss of statistical power.
 2. **Scores.**  Every scoring image is correlated (NCC of its σ = 2 residual with
-   ``I·K``, :func:`forensics.match.score_pair`) with its *own* set's fingerprint — a
+   ``I·K``, :func:`forensics.prnu.match.score_pair`) with its *own* set's fingerprint — a
    *matching* score — and with the *other* set's fingerprint — a *non-matching*
    score.  Its residual is computed once and used for both.
 3. **EER.**  The equal error rate of matching against non-matching scores, with a
    95 % percentile bootstrap interval (the two bags resampled separately, 1,000
-   replicates: :func:`forensics.scores.bootstrap_eer`).
+   replicates: :func:`forensics.stats.scores.bootstrap_eer`).
 4. **Verdict.**  The paper argues by contradiction: *if* the sets came from two
    devices, each image would match its own set's fingerprint better than the
    other's, and the EER would be low.  An interval containing 50 % means the
@@ -60,8 +60,8 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .errors import InputError, UsageError
-from .fingerprint import (
+from forensics._shared.errors import InputError, UsageError
+from forensics.prnu.fingerprint import (
     Fingerprint,
     FingerprintBuilder,
     Region,
@@ -69,10 +69,10 @@ from .fingerprint import (
     parse_region,
     saturation_mask,
 )
-from .match import QUERY_SIGMA, prepare_query, score_pair
-from .progress import Progress, no_progress
-from .residual import median_residual, to_grey, zero_mean_cfa
-from .scores import auc, bootstrap_eer, eer, eer_convex_hull
+from forensics.prnu.match import QUERY_SIGMA, prepare_query, score_pair
+from forensics._shared.progress import Progress, no_progress
+from forensics.prnu.residual import median_residual, to_grey, zero_mean_cfa
+from forensics.stats.scores import auc, bootstrap_eer, eer, eer_convex_hull
 
 __all__ = [
     "FINGERPRINT_IMAGES",
@@ -138,7 +138,7 @@ class ImageSet:
 
     Notes
     -----
-    Build one with :meth:`of` from a dataset folder, a :class:`forensics.dataset.Dataset`
+    Build one with :meth:`of` from a dataset folder, a :class:`forensics.io.dataset.Dataset`
     or a sequence of arrays, paths, frames or zero-argument callables, or with
     :meth:`from_function` for images rendered on demand (simulations).
     """
@@ -184,9 +184,9 @@ class ImageSet:
         Parameters
         ----------
         source : ImageSet, str, PathLike, Dataset or sequence
-            A dataset folder (opened with :func:`forensics.dataset.open_dataset`), a
+            A dataset folder (opened with :func:`forensics.io.dataset.open_dataset`), a
             Dataset, or a sequence whose items are arrays, image paths, objects with
-            ``load()`` (and ``path``) such as :class:`forensics.dataset.Frame`, or
+            ``load()`` (and ``path``) such as :class:`forensics.io.dataset.Frame`, or
             zero-argument callables returning an array.
         name : str, optional
             Name of the set (default: the folder, or 'set').
@@ -199,7 +199,7 @@ class ImageSet:
             If ``source`` is none of the above (e.g. a generator: the protocol draws
             images at random, so it needs to know how many there are).
         """
-        from .dataset import Dataset, open_dataset
+        from forensics.io.dataset import Dataset, open_dataset
 
         if isinstance(source, ImageSet):
             if name is not None:
@@ -224,7 +224,7 @@ class ImageSet:
                 loaders.append(functools.partial(np.asarray, item))
                 sources.append(f"{label}[{i}]")
             elif isinstance(item, (str, os.PathLike)):
-                from .io import read_image
+                from forensics.io.images import read_image
 
                 loaders.append(functools.partial(read_image, Path(item)))
                 sources.append(str(item))
@@ -412,7 +412,7 @@ class EerVerdict:
     Attributes
     ----------
     eer : float
-        Interpolated EER (:func:`forensics.scores.eer`), a fraction.
+        Interpolated EER (:func:`forensics.stats.scores.eer`), a fraction.
     ci : (float, float)
         Bootstrap percentile interval.
     level : float
@@ -543,7 +543,7 @@ class MedianFingerprintBuilder(FingerprintBuilder):
 
     The paper's estimator for the ageing table (it keeps spiky defects).  Intensity
     ``I``, the saturation rule and the accumulation are those of
-    :class:`forensics.fingerprint.FingerprintBuilder`; only the residual differs, and
+    :class:`forensics.prnu.fingerprint.FingerprintBuilder`; only the residual differs, and
     the result is made zero-mean on each CFA sub-lattice without the DFT Wiener step
     (not part of the median variant; it would only rescale a flat spectrum).
 
@@ -554,7 +554,7 @@ class MedianFingerprintBuilder(FingerprintBuilder):
         Median window (3).
     **options
         ``white_level``, ``black_level``, ``saturation_level``, ``saturation_dilate``,
-        ``rolloff`` as :class:`forensics.fingerprint.FingerprintBuilder`.
+        ``rolloff`` as :class:`forensics.prnu.fingerprint.FingerprintBuilder`.
     """
 
     def __init__(self, region: str | Region = "full", size: int = 3, **options: Any) -> None:
@@ -920,7 +920,7 @@ class SameDeviceResult:
 
 def _default_name(source: Any, fallback: str) -> str | None:
     """None (keep the set's own name) for folders, Datasets and ImageSets; ``fallback`` for bare sequences."""
-    from .dataset import Dataset
+    from forensics.io.dataset import Dataset
 
     return None if isinstance(source, (str, os.PathLike, Dataset, ImageSet)) else fallback
 
@@ -1009,7 +1009,7 @@ def same_device(
         ``progress(iterable, total=None, desc=None)``.
     **options
         white_level, black_level, saturation_level, saturation_dilate, rolloff,
-        workers — as :class:`forensics.fingerprint.FingerprintBuilder`.
+        workers — as :class:`forensics.prnu.fingerprint.FingerprintBuilder`.
 
     Returns
     -------
@@ -1114,12 +1114,12 @@ def add_to_report(result: SameDeviceResult, rep: Any, *, prefix: str = "") -> No
     Parameters
     ----------
     result : SameDeviceResult
-    rep : forensics.report.Report
+    rep : forensics.report.html.Report
     prefix : str
         Prepended to figure names (several results in one report).
     """
-    from .report import new_figure
-    from .scores import det_curve, plot_det, plot_score_histograms
+    from forensics.report.html import new_figure
+    from forensics.stats.scores import det_curve, plot_det, plot_score_histograms
 
     a, b = result.set_a, result.set_b
     e = result.eer

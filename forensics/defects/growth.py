@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .defects import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect_dataset
-from .errors import InputError
-from .model import KIND_CODES, KIND_NAMES, PARTIAL, STUCK
-from .progress import Progress, no_progress
+from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect_dataset
+from forensics._shared.errors import InputError
+from forensics.sensor.model import KIND_CODES, KIND_NAMES, PARTIAL, STUCK
+from forensics._shared.progress import Progress, no_progress
 
 LEVEL = 0.95
 #: z above which a site already counts as present when looking back for a defect's first epoch.
@@ -529,7 +529,7 @@ def near_sites(detection: DetectionResult, exclude: set[tuple[int, int]], z_rech
     """
     if detection.d_hat is None:
         return []
-    from .defects import _lattices
+    from forensics.defects.detection import _lattices
 
     z = np.full(detection.shape, -np.inf, np.float32)
     for fit, (_, (sy, sx)) in zip(detection.fits, _lattices(detection.shape, detection.cfa)):
@@ -653,7 +653,7 @@ class GrowthModel:
 
     def save(self, path: str | os.PathLike, force: bool = False) -> Path:
         """Write the model as JSON (atomically)."""
-        from .atomic import write_json
+        from forensics._shared.atomic import write_json
 
         return write_json(path, self.to_dict(), force=force)
 
@@ -680,7 +680,7 @@ class GrowthModel:
 # =========================================================================== figures
 def counts_figure(result: GrowthResult):
     """Cumulative defects per epoch with Garwood 95 % intervals and the constant-rate fit."""
-    from .report import new_figure
+    from forensics.report.html import new_figure
 
     fig, ax = new_figure(6.4, 4.0)
     t = np.asarray(result.dates)
@@ -703,7 +703,7 @@ def counts_figure(result: GrowthResult):
 
 
 def growth_report(result: GrowthResult, title: str = "Defect growth") -> Any:
-    from .report import Report
+    from forensics.report.html import Report
 
     rep = Report(title)
     th = result.threshold

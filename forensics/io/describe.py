@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from .dataset import Dataset
-from .io import ImageInfo, is_raw, read_info, read_raw
+from forensics.io.dataset import Dataset
+from forensics.io.images import ImageInfo, is_raw, read_info, read_raw
 
 
 @dataclass

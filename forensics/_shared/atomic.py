@@ -15,7 +15,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from .errors import UsageError
+from forensics._shared.errors import UsageError
 
 
 def refuse_existing(path: str | os.PathLike, force: bool) -> Path:

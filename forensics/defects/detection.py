@@ -1,6 +1,6 @@
 """Defect detection from ordinary images (reference paper, section 3.2, eq. 11–15).
 
-One streaming pass over K images of one device (:func:`forensics.stack.stack_stats`)
+One streaming pass over K images of one device (:func:`forensics.io.stack.stack_stats`)
 gives the per-pixel mean ȳ, minimum, maximum and variance.  Then
 
 * **stuck** pixels (eq. 11): the same value in all K images, ``max − min ≤ tolerance``
@@ -37,11 +37,11 @@ from typing import Any
 import numpy as np
 from scipy import ndimage, stats
 
-from .errors import InputError, UsageError
-from .filters import median_filter
-from .model import KIND_NAMES, PARTIAL, STUCK
-from .progress import Progress, no_progress
-from .stack import StackAccumulator, StackStats
+from forensics._shared.errors import InputError, UsageError
+from forensics._shared.filters import median_filter
+from forensics.sensor.model import KIND_NAMES, PARTIAL, STUCK
+from forensics._shared.progress import Progress, no_progress
+from forensics.io.stack import StackAccumulator, StackStats
 
 DEFAULT_Q = 9
 DEFAULT_SIGMA = 5.0
@@ -134,7 +134,7 @@ def texture_mask(d_hat: np.ndarray, window: int = 15, factor: float = 3.0) -> np
 
 def load_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """A mask image as booleans (non-zero = analysed); must match the frames' size."""
-    from .io import read_image
+    from forensics.io.images import read_image
 
     img = read_image(path)
     if img.ndim == 3:
@@ -165,8 +165,8 @@ class DetectionResult:
     """Defects found in one stack of images.
 
     Array attributes (x, y, kind, amplitude, z, channel) hold one entry per
-    defect: kind is :data:`~forensics.model.PARTIAL` or
-    :data:`~forensics.model.STUCK`; amplitude is d̂ (DN) for partially stuck
+    defect: kind is :data:`~forensics.sensor.model.PARTIAL` or
+    :data:`~forensics.sensor.model.STUCK`; amplitude is d̂ (DN) for partially stuck
     pixels and the stuck value c for stuck ones; z is (d̂ − center)/scale.
     ``d_hat`` and ``mask`` are image-sized and not serialised.
     """
@@ -342,7 +342,7 @@ def detect(stack: StackStats, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_
     Parameters
     ----------
     stack
-        Statistics of K images of one device (:func:`forensics.stack.stack_stats`).
+        Statistics of K images of one device (:func:`forensics.io.stack.stack_stats`).
     q
         Median kernel size (odd).
     sigma, tau
@@ -496,7 +496,7 @@ def prefetch(items: Iterable[Any], depth: int = 2) -> Iterator[Any]:
 
 def dataset_cfa(ds: Any) -> str | None:
     """The CFA pattern when the dataset's frames are raw mosaics, else None."""
-    from .io import is_raw, read_raw
+    from forensics.io.images import is_raw, read_raw
 
     if ds.frames and is_raw(ds.frames[0].path):
         return read_raw(ds.frames[0].path).cfa_pattern
@@ -517,7 +517,7 @@ def detect_dataset(ds: Any, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SI
                    mask: MaskSpec | None = None, stuck_tolerance: float = 0.0, progress: Progress = no_progress,
                    threads: int | None = None) -> DetectionResult:
     """:func:`detect` on a dataset folder's images (one streaming pass; raw mosaics per CFA channel)."""
-    from .io import dtype_max
+    from forensics.io.images import dtype_max
 
     if len(ds) == 0:
         raise InputError(f"{ds.root}: no images")
@@ -531,7 +531,7 @@ def detect_dataset(ds: Any, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SI
 # =========================================================================== report figures
 def histogram_figure(result: DetectionResult):
     """The accumulated histogram: pixels above each threshold, log scale, with τ and the normal expectation."""
-    from .report import new_figure
+    from forensics.report.html import new_figure
 
     fig, ax = new_figure(6.4, 4.0)
     x = result.hist_thresholds
@@ -549,7 +549,7 @@ def histogram_figure(result: DetectionResult):
 
 def defect_map_figure(result: DetectionResult, title: str = ""):
     """Where the defects are, over the analysed region."""
-    from .report import new_figure
+    from forensics.report.html import new_figure
 
     h, w = result.shape
     fig, ax = new_figure(6.4, 6.4 * h / w + 0.6)
@@ -568,7 +568,7 @@ def defect_map_figure(result: DetectionResult, title: str = ""):
 
 def detection_report(result: DetectionResult, title: str = "Defect detection", source: str = "") -> Any:
     """An HTML report of one detection: summary, threshold, accumulated histogram, map, table."""
-    from .report import Report
+    from forensics.report.html import Report
 
     rep = Report(title)
     rep.text(f"{source + ': ' if source else ''}{result.n_images} images of {result.shape[1]}×{result.shape[0]}; "

@@ -62,7 +62,7 @@ import pywt
 import scipy.fft
 from scipy import ndimage
 
-from .errors import InputError
+from forensics._shared.errors import InputError
 
 __all__ = [
     "GREY_WEIGHTS",
@@ -640,7 +640,7 @@ def median_residual(image: np.ndarray, size: int = 3) -> np.ndarray:
     """
     if size < 3 or size % 2 == 0:
         raise InputError(f"size={size}: the median window must be odd and at least 3")
-    from .filters import median_filter
+    from forensics._shared.filters import median_filter
 
     y = to_grey(image)
     y -= median_filter(y, size)

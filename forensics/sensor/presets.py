@@ -5,9 +5,9 @@ and scaled to the output bit depth by ``(2**bits − 1) / 255``.
 """
 from __future__ import annotations
 
-from .effects import Growth, Offset, Stuck
-from .errors import UsageError
-from .model import SensorModel
+from forensics.sensor.effects import Growth, Offset, Stuck
+from forensics._shared.errors import UsageError
+from forensics.sensor.model import SensorModel
 
 #: Table 3: growth rates (defects / MP / year) of partially stuck pixels.
 LAMBDA_H100 = 0.6659

@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .io import IMAGE_EXTENSIONS, ImageInfo, read_image, read_info
-from .progress import Progress, no_progress
+from forensics._shared.errors import InputError
+from forensics.io.images import IMAGE_EXTENSIONS, ImageInfo, read_image, read_info
+from forensics._shared.progress import Progress, no_progress
 
 MANIFEST = "manifest.csv"
 STANDARD_COLUMNS = ("file", "device", "captured", "exposure_s", "iso", "temperature_c", "subject")
@@ -353,7 +353,7 @@ def _frame_from_row(root: Path, manifest: Path, row_number: int, row: dict[str, 
 
 def write_manifest(path: str | os.PathLike, rows: list[dict[str, Any]], force: bool = False) -> Path:
     """Write a ``manifest.csv`` atomically from a list of row dicts (standard columns first)."""
-    from .atomic import atomic_file
+    from forensics._shared.atomic import atomic_file
 
     columns = [c for c in STANDARD_COLUMNS if any(c in r for r in rows)]
     columns += sorted({k for r in rows for k in r} - set(columns))

@@ -34,11 +34,11 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .defects import DetectionResult, detect_dataset
-from .errors import InputError
-from .growth import LEVEL, Z_RECHECK, GrowthModel, _z_at, midp_binomial
-from .model import STUCK
-from .progress import Progress, no_progress
+from forensics.defects.detection import DetectionResult, detect_dataset
+from forensics._shared.errors import InputError
+from forensics.defects.growth import LEVEL, Z_RECHECK, GrowthModel, _z_at, midp_binomial
+from forensics.sensor.model import STUCK
+from forensics._shared.progress import Progress, no_progress
 
 #: Weight of the "anything else" component in the per-defect likelihoods (texture, edges).
 CONTAMINATION = 0.02
@@ -165,7 +165,7 @@ def _position(i: int, m: int, dates: list[float], first: np.ndarray, present: np
 
 def date_dataset(model: GrowthModel, ds: Any, level: float = LEVEL, progress: Progress = no_progress) -> SetDating:
     """Detect defects in a query dataset with the model's settings, then :func:`date_set`."""
-    from .growth import dataset_device
+    from forensics.defects.growth import dataset_device
 
     device = dataset_device(ds)
     if device and model.device and device != model.device:
@@ -310,7 +310,7 @@ def date_image(model: GrowthModel, image: np.ndarray, cfa: str | None = None) ->
 # =========================================================================== figures
 def set_dating_figure(model: GrowthModel, result: SetDating):
     """Reference counts against date, with the query's estimate and interval."""
-    from .report import new_figure
+    from forensics.report.html import new_figure
 
     fig, ax = new_figure(6.4, 4.0)
     t = np.asarray(model.dates)
@@ -330,7 +330,7 @@ def set_dating_figure(model: GrowthModel, result: SetDating):
 
 def likelihood_figure(result: ImageDating):
     """Relative likelihood of each onset interval (single-image dating)."""
-    from .report import new_figure
+    from forensics.report.html import new_figure
 
     fig, ax = new_figure(6.4, 3.6)
     post = result.posterior
@@ -347,7 +347,7 @@ def likelihood_figure(result: ImageDating):
 
 
 def dating_report(model: GrowthModel, result: SetDating | ImageDating, query: str = "") -> Any:
-    from .report import Report
+    from forensics.report.html import Report
 
     rep = Report("Dating from sensor defects")
     lo, hi = result.interval

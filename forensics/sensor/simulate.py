@@ -1,7 +1,7 @@
 """The reference paper's ageing simulation (AGEDIMAGESEQUENCE) and scene sets.
 
 :func:`age_dataset` takes a source dataset (images captured at T0), realises
-one simulated device from a :class:`~forensics.model.SensorModel`, and writes
+one simulated device from a :class:`~forensics.sensor.model.SensorModel`, and writes
 one dataset per sample time: every source image with the defects the device
 has at that time.  The device's defect history is shared by all its images
 (one device, one history), and earlier defects persist (*once defective,
@@ -17,14 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
-from .atomic import atomic_directory, refuse_inputs, write_json
-from .dataset import Dataset, write_manifest
-from .errors import InputError
-from .io import write_image
-from .model import Device, SensorModel
-from .progress import Progress, no_progress
-from .scenes import scene_image
+from forensics import __version__
+from forensics._shared.atomic import atomic_directory, refuse_inputs, write_json
+from forensics.io.dataset import Dataset, write_manifest
+from forensics._shared.errors import InputError
+from forensics.io.images import write_image
+from forensics.sensor.model import Device, SensorModel
+from forensics._shared.progress import Progress, no_progress
+from forensics.sensor.scenes import scene_image
 
 
 def parse_years(spec: str) -> list[float]:
@@ -169,7 +169,7 @@ def age_dataset(
 
 def write_catalogue(path: str | os.PathLike, device: Device, force: bool = False) -> Path:
     """Write the device's ground-truth defects as CSV: x, y, kind, amplitude, onset_year, source, extras."""
-    from .atomic import atomic_file
+    from forensics._shared.atomic import atomic_file
     import csv
 
     rows = device.catalogue.to_rows()
@@ -182,10 +182,10 @@ def write_catalogue(path: str | os.PathLike, device: Device, force: bool = False
 
 
 def read_catalogue(path: str | os.PathLike):
-    """Read a ``defects.csv`` back into a :class:`~forensics.model.DefectCatalogue`."""
+    """Read a ``defects.csv`` back into a :class:`~forensics.sensor.model.DefectCatalogue`."""
     import csv
 
-    from .model import KIND_CODES, DefectCatalogue
+    from forensics.sensor.model import KIND_CODES, DefectCatalogue
 
     path = Path(path)
     try:
@@ -209,7 +209,7 @@ def make_scenes(out: str | os.PathLike, n: int, shape: tuple[int, int], seed: in
                 kind: str = "mixed", start_year: float | None = None, device: str | None = None, force: bool = False,
                 progress: Progress = no_progress, ext: str = ".png") -> Dataset:
     """Write ``n`` scene images (a dataset with a manifest) for users who have no images of their own."""
-    from .dataset import open_dataset
+    from forensics.io.dataset import open_dataset
 
     out = Path(out)
     rng = np.random.default_rng(seed)

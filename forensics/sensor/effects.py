@@ -1,4 +1,4 @@
-"""Built-in effects of the sensor model (see :mod:`forensics.model`).
+"""Built-in effects of the sensor model (see :mod:`forensics.sensor.model`).
 
 Base model of the reference paper (eq. 5 with Poisson arrivals): ``growth``
 (defect arrivals), ``offset`` (partially stuck, y = i + d) and ``stuck``
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .model import (
+from forensics.sensor.model import (
     PARTIAL,
     STUCK,
     DefectCatalogue,
@@ -451,7 +451,7 @@ class AcceleratingGrowth(Effect):
 
 def describe_effects() -> list[dict[str, Any]]:
     """Every registered effect: name, description, stage, needed fields and parameters."""
-    from .model import EFFECTS
+    from forensics.sensor.model import EFFECTS
 
     return [{"name": cls.name, "description": cls.description, "stage": cls.stage.name.lower(),
              "role": cls.role, "fields": list(cls.fields), "params": cls.parameter_info()}

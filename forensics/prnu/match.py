@@ -33,10 +33,10 @@ import numpy as np
 import scipy.fft
 from scipy import special
 
-from .errors import InputError, UsageError
-from .fingerprint import Fingerprint, Region, parse_region, region_residual_and_intensity
-from .progress import Progress, no_progress
-from .residual import default_workers
+from forensics._shared.errors import InputError, UsageError
+from forensics.prnu.fingerprint import Fingerprint, Region, parse_region, region_residual_and_intensity
+from forensics._shared.progress import Progress, no_progress
+from forensics.prnu.residual import default_workers
 
 __all__ = [
     "QUERY_SIGMA",
@@ -301,7 +301,7 @@ def pce(
     exclusion : int
         Odd size of the square around the peak left out of the energy (11).
     workers : int, optional
-        FFT threads (default :func:`forensics.residual.default_workers`).
+        FFT threads (default :func:`forensics.prnu.residual.default_workers`).
 
     Returns
     -------
@@ -368,7 +368,7 @@ def prepare_query(
     source : str, optional
         Name kept in the result.
     white_level, black_level, saturation_level, saturation_dilate, rolloff, workers
-        As :class:`forensics.fingerprint.FingerprintBuilder`.
+        As :class:`forensics.prnu.fingerprint.FingerprintBuilder`.
     """
     region = parse_region(region)
     image = np.asarray(image)
@@ -553,7 +553,7 @@ def score_matrix(
     queries : iterable
         Each item is an image array, a :class:`Query`, a ``(residual, intensity)``
         pair already cut to the fingerprints' region, or an object with ``load()``
-        (and ``path``), e.g. :class:`forensics.dataset.Frame`.  They are consumed one
+        (and ``path``), e.g. :class:`forensics.io.dataset.Frame`.  They are consumed one
         at a time, so only one query's data is in memory.
     metric, sigma, shift_range, exclusion, rotations, **query_options
         As :func:`score_query`.

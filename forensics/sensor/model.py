@@ -35,7 +35,7 @@ bounds).  It declares ``name``, ``description``, ``stage`` and the manifest
 ``fields`` it needs, and implements ``realize`` (device state) and/or
 ``apply`` (per frame).
 
-Model checking (:mod:`forensics.check`) uses the same objects.  An effect
+Model checking (:mod:`forensics.check.core`) uses the same objects.  An effect
 tells it
 
 * which of its parameters are fitted (``param(..., free=True)``) and their null
@@ -68,7 +68,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .errors import InputError, UsageError
+from forensics._shared.errors import InputError, UsageError
 
 PARTIAL = 0
 STUCK = 1
@@ -487,7 +487,7 @@ def make_effect(spec: str, **params: Any) -> Effect:
     UsageError
         If the name is unknown or the class cannot be loaded.
     """
-    from . import effects as _builtin  # noqa: F401  (fills the registry)
+    import forensics.sensor.effects as _builtin  # noqa: F401  (fills the registry)
 
     if spec in EFFECTS:
         return EFFECTS[spec](**params)
@@ -508,7 +508,7 @@ def make_effect(spec: str, **params: Any) -> Effect:
     except (ImportError, AttributeError, SyntaxError) as exc:
         raise UsageError(f"cannot load the effect '{spec}': {exc}") from exc
     if not (isinstance(cls, type) and issubclass(cls, Effect)):
-        raise UsageError(f"'{spec}' is not a subclass of forensics.model.Effect")
+        raise UsageError(f"'{spec}' is not a subclass of forensics.sensor.model.Effect")
     return cls(**params)
 
 

@@ -18,7 +18,7 @@ Conventions
   scores therefore gives a diagonal segment, which is the ROC of a decision
   that is randomised at the tied value -- the only tie-neutral choice.
 * Inputs are any array-likes of real numbers (flattened); empty inputs and
-  NaN raise :class:`~forensics.errors.InputError`.  ``+/-inf`` are allowed.
+  NaN raise :class:`~forensics._shared.errors.InputError`.  ``+/-inf`` are allowed.
 
 Two equal-error rates
 ---------------------
@@ -61,7 +61,7 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError, UsageError
+from forensics._shared.errors import InputError, UsageError
 
 __all__ = [
     "Roc",

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .progress import Progress, no_progress
+from forensics._shared.errors import InputError
+from forensics._shared.progress import Progress, no_progress
 
 #: uint32 sums of 16-bit values stay exact up to 65,537 images.
 MAX_INTEGER_IMAGES = 65_000

@@ -10,7 +10,7 @@ of checks, and the candidate effects ranked by how much adding each would
 improve the fit.
 
 The measurements are reduced to four *channels* of statistics; every effect
-acts on one or more of them according to its :class:`~forensics.model.Stage`,
+acts on one or more of them according to its :class:`~forensics.sensor.model.Stage`,
 so nothing here depends on an effect's name:
 
 ``pixel``
@@ -97,11 +97,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import ndimage, optimize, stats
 
-from . import spatial as sp
-from .dataset import Dataset, open_dataset
-from .defects import robust_normal
-from .errors import InputError, UsageError
-from .model import (
+import forensics.stats.spatial as sp
+from forensics.io.dataset import Dataset, open_dataset
+from forensics.defects.detection import robust_normal
+from forensics._shared.errors import InputError, UsageError
+from forensics.sensor.model import (
     EFFECTS,
     PARTIAL,
     STUCK,
@@ -112,10 +112,10 @@ from .model import (
     Stage,
     make_effect,
 )
-from .progress import Progress, no_progress
+from forensics._shared.progress import Progress, no_progress
 
 if TYPE_CHECKING:
-    from .report import Report
+    from forensics.report.html import Report
 
 CLASSES = ("normal", "partial", "stuck")
 NORMAL, PART, STK = 0, 1, 2
@@ -721,7 +721,7 @@ def _is_pixel(effect: Effect) -> bool:
 class Evidence:
     """The measurements, the detected defects and the model being fitted, with the helpers effects use.
 
-    Effects' :meth:`~forensics.model.Effect.fit` receives this object; the public helpers are
+    Effects' :meth:`~forensics.sensor.model.Effect.fit` receives this object; the public helpers are
     :meth:`amplitude_max`, :meth:`detect_fraction`, :meth:`arrival_rate`, :meth:`site_intensity`,
     :meth:`cluster_excess`, :attr:`shape`, :attr:`sites`, :attr:`window`, plus :meth:`signature` (the
     generic signature) and :meth:`predict`.
@@ -2040,13 +2040,13 @@ def _frames_to_add(ev: Evidence, a: str, b: str | None) -> str:
 # =========================================================================== entry point
 def base_model() -> list[Effect]:
     """The base model: every registered effect whose role is ``base``, at its defaults."""
-    from . import effects as _builtin  # noqa: F401
+    import forensics.sensor.effects as _builtin  # noqa: F401
 
     return [cls() for cls in EFFECTS.values() if cls.role == "base"]
 
 
 def candidate_names(model_effects: list[Effect]) -> list[str]:
-    from . import effects as _builtin  # noqa: F401
+    import forensics.sensor.effects as _builtin  # noqa: F401
 
     have = {e.key for e in model_effects}
     return [n for n, c in EFFECTS.items() if c.role == "candidate" and n not in have]
@@ -2162,7 +2162,7 @@ def check_report(result: CheckResult, title: str = "Model check") -> "Report":
     """An HTML report of a check: tables, residual maps, residuals against every covariate, defect counts
     against time with the model's band, Ripley's L with its envelope; with a baseline, before and after side by
     side."""
-    from .report import Report, new_figure
+    from forensics.report.html import Report, new_figure
 
     rep = Report(title)
     runs = [("before", result.baseline), ("after", result)] if result.baseline is not None else [("model", result)]

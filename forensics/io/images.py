@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import refuse_existing
-from .errors import InputError
+from forensics._shared.atomic import refuse_existing
+from forensics._shared.errors import InputError
 
 RAW_EXTENSIONS = frozenset(
     ".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .orf .rw2 .raf .pef .srw .3fr .erf .kdc .mos .mrw .x3f .iiq".split()
@@ -247,7 +247,7 @@ def write_image(
     metadata
         Extra attributes for the header, e.g. ``{"DateTime": "2009:01:06 14:24:07"}``.
     """
-    from .atomic import refuse_inputs
+    from forensics._shared.atomic import refuse_inputs
 
     oiio = _oiio()
     path = Path(path)
