@@ -30,10 +30,11 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "prnu"))
 from test_residual import oracle_residual  # noqa: E402  (the float64 oracle)
 
 from forensics.prnu import residual as R  # noqa: E402
+from forensics._shared.arrays import grey_luma  # noqa: E402
 
 SHAPE = (2000, 3008)
 
@@ -78,7 +79,7 @@ def main() -> None:
         buf = np.empty((h + top + bottom, w + left + right), np.float32)
 
         def grey_pad() -> np.ndarray:
-            R.to_grey(image, out=buf[top : top + h, left : left + w])
+            grey_luma(image, out=buf[top : top + h, left : left + w])
             R._mirror_edges(buf, top, bottom, left, right)
             return buf
 

@@ -98,8 +98,9 @@ import numpy as np
 from scipy import ndimage, optimize, stats
 
 import forensics.stats.spatial as sp
-from forensics.io.dataset import Dataset, open_dataset
+from forensics.io.dataset import Dataset, open_dataset, split_epochs
 from forensics.defects.detection import robust_normal
+from forensics._shared.arrays import grey_mean, infer_full_scale
 from forensics._shared.errors import InputError, UsageError
 from forensics.sensor.model import (
     EFFECTS,
@@ -113,6 +114,7 @@ from forensics.sensor.model import (
     make_effect,
 )
 from forensics._shared.progress import Progress, no_progress
+from forensics.stats.counts import poisson_deviance
 
 if TYPE_CHECKING:
     from forensics.report.html import Report
@@ -273,36 +275,6 @@ class Measurements:
         return sorted({getattr(g, attr) for g in self.groups if getattr(g, attr) is not None})
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
-    return image.astype(np.float64) if image.ndim == 2 else image.astype(np.float64).mean(axis=2)
-
-
-def infer_full_scale(dtype: np.dtype, maximum: float) -> float:
-    """Full scale of the data: 255 for 8-bit; for 16-bit containers the smallest of 10/12/14/16 bits that holds
-    the largest value (raw data are commonly 12- or 14-bit in 16-bit files); 1.0 for floats."""
-    if dtype == np.uint8:
-        return 255.0
-    if np.issubdtype(dtype, np.integer):
-        for bits in (10, 12, 14, 16):
-            if maximum <= 2**bits - 1:
-                return float(2**bits - 1)
-        return float(np.iinfo(dtype).max)
-    return 1.0
-
-
-def split_epochs(times: np.ndarray, gap_years: float) -> tuple[np.ndarray, np.ndarray]:
-    """Epoch index of every frame and the epochs' times (median capture time); a new epoch after a gap."""
-    order = np.argsort(times, kind="stable")
-    epoch = np.zeros(len(times), int)
-    current = 0
-    for prev, nxt in zip(order[:-1], order[1:]):
-        if times[nxt] - times[prev] > gap_years:
-            current += 1
-        epoch[nxt] = current
-    epoch_times = np.array([float(np.median(times[epoch == e])) for e in range(current + 1)])
-    return epoch, epoch_times
-
-
 def load_measurements(data: Dataset | str | Path, border: int | None = None, epoch_gap: float = 0.25,
                       max_size: int = 512, progress: Progress = no_progress) -> Measurements:
     """Read every frame once and reduce the dataset to per-condition statistics.
@@ -370,7 +342,7 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
         for i in g.frames:
             img = ds.frames[i].load()
             dtype = img.dtype if dtype is None else dtype
-            stack.append(_grey(img[crop]))
+            stack.append(grey_mean(img[crop], np.float64))
         arr = np.stack(stack)
         maximum = max(maximum, float(arr.max()))
         mean_all[g.index] = arr.mean(0)
@@ -1553,13 +1525,6 @@ def _simulate_null(ev: Evidence, fitted: FittedModel) -> None:
         m0 = ls.mean(0)
         s0 = np.maximum(ls.std(0, ddof=1), 1e-9)
         fitted.spatial_null = {"sims": ls, "mean": m0, "sd": s0}
-
-
-def poisson_deviance(obs: np.ndarray, exp: np.ndarray) -> float:
-    obs = np.asarray(obs, float)
-    exp = np.maximum(np.asarray(exp, float), 1e-12)
-    term = np.where(obs > 0, obs * np.log(np.where(obs > 0, obs, 1) / exp), 0.0)
-    return float(2.0 * np.sum(term - (obs - exp)))
 
 
 # =========================================================================== scoring

@@ -36,7 +36,8 @@ from scipy import stats
 
 from forensics.defects.detection import DetectionResult, detect_dataset
 from forensics._shared.errors import InputError
-from forensics.defects.growth import LEVEL, Z_RECHECK, GrowthModel, _z_at, midp_binomial
+from forensics.defects.growth import Z_RECHECK, GrowthModel, _z_at
+from forensics.stats.counts import LEVEL, midp_binomial
 from forensics.sensor.model import STUCK
 from forensics._shared.progress import Progress, no_progress
 

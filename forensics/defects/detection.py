@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage, stats
 
+from forensics._shared.arrays import full_scale, grey_mean
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.filters import median_filter
 from forensics.sensor.model import KIND_NAMES, PARTIAL, STUCK
@@ -313,10 +314,6 @@ def _constant_neighbours(const: np.ndarray, candidates: np.ndarray) -> np.ndarra
     return out
 
 
-def _grey(a: np.ndarray) -> np.ndarray:
-    return a.mean(axis=2, dtype=np.float32) if a.ndim == 3 else a.astype(np.float32, copy=False)
-
-
 def _lattices(shape: tuple[int, int], cfa: str | None) -> list[tuple[str, tuple[slice, slice]]]:
     if not cfa:
         return [("grey", (slice(None), slice(None)))]
@@ -364,7 +361,7 @@ def detect(stack: StackStats, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_
     """
     if tau is None and (sigma is None or sigma <= 0):
         raise UsageError("give a positive --sigma or a threshold --tau")
-    mean = _grey(stack.mean)
+    mean = grey_mean(stack.mean)
     shape = mean.shape
     if cfa and (shape[0] % 2 or shape[1] % 2):
         shape_note = f"{shape[1]}×{shape[0]}"
@@ -517,7 +514,6 @@ def detect_dataset(ds: Any, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SI
                    mask: MaskSpec | None = None, stuck_tolerance: float = 0.0, progress: Progress = no_progress,
                    threads: int | None = None) -> DetectionResult:
     """:func:`detect` on a dataset folder's images (one streaming pass; raw mosaics per CFA channel)."""
-    from forensics.io.images import dtype_max
 
     if len(ds) == 0:
         raise InputError(f"{ds.root}: no images")
@@ -525,7 +521,7 @@ def detect_dataset(ds: Any, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SI
     stack = stack_dataset(ds, progress)
     cfa = dataset_cfa(ds)
     return detect(stack, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance, cfa=cfa,
-                  full_scale=dtype_max(stack.minimum.dtype), threads=threads)
+                  full_scale=full_scale(stack.minimum.dtype), threads=threads)
 
 
 # =========================================================================== report figures

@@ -44,6 +44,30 @@ STANDARD_COLUMNS = ("file", "device", "captured", "exposure_s", "iso", "temperat
 _NUMERIC = ("exposure_s", "iso", "temperature_c")
 
 
+def split_epochs(times: np.ndarray, gap_years: float) -> tuple[np.ndarray, np.ndarray]:
+    """Split capture times into epochs: a new epoch starts after a gap longer than ``gap_years``.
+
+    Returns
+    -------
+    epoch : ndarray of int
+        The epoch index of every time, numbered in time order.
+    epoch_times : ndarray
+        Each epoch's median capture time.
+    """
+    times = np.asarray(times, float)
+    if times.size == 0:
+        return np.zeros(0, int), np.zeros(0)
+    order = np.argsort(times, kind="stable")
+    epoch = np.zeros(len(times), int)
+    current = 0
+    for prev, nxt in zip(order[:-1], order[1:]):
+        if times[nxt] - times[prev] > gap_years:
+            current += 1
+        epoch[nxt] = current
+    epoch_times = np.array([float(np.median(times[epoch == e])) for e in range(current + 1)])
+    return epoch, epoch_times
+
+
 def decimal_year(when: _dt.datetime | _dt.date) -> float:
     """Convert a date or datetime to a decimal year (2009-07-02T12:00 → 2009.5)."""
     if not isinstance(when, _dt.datetime):
@@ -224,14 +248,9 @@ class Dataset:
     def epochs(self, gap_years: float = 0.25) -> list["Dataset"]:
         """Split by capture time into epochs: a new epoch starts after a gap longer than ``gap_years``."""
         times = self.captured_times()
-        order = np.argsort(times, kind="stable")
-        out: list[list[int]] = []
-        for i in order:
-            if out and times[i] - times[out[-1][-1]] <= gap_years:
-                out[-1].append(int(i))
-            else:
-                out.append([int(i)])
-        return [self.subset(idx) for idx in out]
+        epoch, epoch_times = split_epochs(times, gap_years)
+        order = np.argsort(times, kind="stable")  # frames in time order within each epoch
+        return [self.subset(order[epoch[order] == e]) for e in range(len(epoch_times))]
 
     def captured_times(self) -> np.ndarray:
         """Every frame's capture time (decimal years).

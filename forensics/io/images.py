@@ -288,12 +288,6 @@ def write_image(
     return path
 
 
-def dtype_max(dtype: np.dtype | type) -> float:
-    """The largest value of an integer dtype (1.0 for floats): the saturation level."""
-    dtype = np.dtype(dtype)
-    return float(np.iinfo(dtype).max) if dtype.kind in "ui" else 1.0
-
-
 def bits_dtype(bit_depth: int) -> np.dtype:
     """uint8 for up to 8 bits, uint16 for up to 16."""
     if bit_depth <= 8:

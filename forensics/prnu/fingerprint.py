@@ -58,11 +58,10 @@ from forensics import __version__
 from forensics._shared.atomic import atomic_file
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.progress import Progress, no_progress
+from forensics._shared.arrays import GREY_WEIGHTS, full_scale
 from forensics.prnu.residual import (
-    GREY_WEIGHTS,
     LEVELS,
     WAVELET,
-    full_scale,
     residual_and_grey,
     wiener_dft,
     zero_mean_cfa,

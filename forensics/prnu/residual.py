@@ -63,13 +63,11 @@ import scipy.fft
 from scipy import ndimage
 
 from forensics._shared.errors import InputError
+from forensics._shared.arrays import GREY_WEIGHTS, full_scale, grey_luma
 
 __all__ = [
-    "GREY_WEIGHTS",
     "LEVELS",
     "WAVELET",
-    "full_scale",
-    "to_grey",
     "wavelet_noise",
     "zero_mean_cfa",
     "wiener_dft",
@@ -79,8 +77,6 @@ __all__ = [
     "default_workers",
 ]
 
-#: Luma weights (ITU-R BT.601) used to turn RGB into grey.
-GREY_WEIGHTS: tuple[float, float, float] = (0.299, 0.587, 0.114)
 #: Wavelet and number of decomposition levels of the reference design.
 WAVELET = "db4"
 LEVELS = 4
@@ -137,18 +133,6 @@ def _submit(pool: ThreadPoolExecutor | None, fn: Callable[..., Any], *args: Any)
 # ----------------------------------------------------------------------------- input handling
 
 
-def full_scale(dtype: np.dtype | type) -> float:
-    """The pixel value of full scale for a dtype: the integer maximum, or 1.0 for floats."""
-    dtype = np.dtype(dtype)
-    if dtype.kind in "ui":
-        return float(np.iinfo(dtype).max)
-    if dtype.kind == "f":
-        return 1.0
-    if dtype.kind == "b":
-        return 1.0
-    raise InputError(f"unsupported pixel type {dtype}; expected integer or floating-point pixels")
-
-
 def _check_image(image: np.ndarray) -> np.ndarray:
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[2] == 1:
@@ -163,36 +147,6 @@ def _check_image(image: np.ndarray) -> np.ndarray:
     if image.dtype.kind == "f" and not np.all(np.isfinite(image)):
         raise InputError("image contains NaN or infinite values; clean or mask them first")
     return image
-
-
-def to_grey(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Grey float32 version of an image: BT.601 luma of RGB, or the 2-D input itself.
-
-    Parameters
-    ----------
-    image : ndarray, (H, W) or (H, W, 3)
-        Any integer or float dtype; a 4th (alpha) channel is ignored.
-    out : ndarray, optional
-        float32 array of shape (H, W) to write into (may be a view).
-
-    Returns
-    -------
-    ndarray, float32, (H, W)
-        In the input's units (no rescaling).
-    """
-    image = _check_image(image)
-    if out is None:
-        out = np.empty(image.shape[:2], np.float32)
-    if image.ndim == 2:
-        out[...] = image
-        return out
-    w = [np.float32(v) for v in GREY_WEIGHTS]
-    np.multiply(image[..., 0], w[0], out=out, dtype=np.float32, casting="unsafe")
-    tmp = np.empty(out.shape, np.float32)
-    for c in (1, 2):
-        np.multiply(image[..., c], w[c], out=tmp, dtype=np.float32, casting="unsafe")
-        out += tmp
-    return out
 
 
 def _pad_sizes(n: int, multiple: int) -> tuple[int, int]:
@@ -617,7 +571,7 @@ def residual_and_grey(
     left, right = _pad_sizes(w, m)
     buf = np.empty((h + top + bottom, w + left + right), np.float32)
     grey = buf[top : top + h, left : left + w]
-    to_grey(image, out=grey)
+    grey_luma(image, out=grey)
     _mirror_edges(buf, top, bottom, left, right)
     noise = wavelet_noise(buf, noise_sigma, levels=levels, workers=workers)
     return noise[top : top + h, left : left + w], grey
@@ -629,7 +583,7 @@ def median_residual(image: np.ndarray, size: int = 3) -> np.ndarray:
     Parameters
     ----------
     image : ndarray, (H, W) or (H, W, 3)
-        RGB is reduced to grey first (:func:`to_grey`).
+        RGB is reduced to grey first (:func:`~forensics._shared.arrays.grey_luma`).
     size : int
         Odd median window (3 in the paper).
 
@@ -642,6 +596,6 @@ def median_residual(image: np.ndarray, size: int = 3) -> np.ndarray:
         raise InputError(f"size={size}: the median window must be odd and at least 3")
     from forensics._shared.filters import median_filter
 
-    y = to_grey(image)
+    y = grey_luma(image)
     y -= median_filter(y, size)
     return y

@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from forensics._shared.rng import as_generator
 from forensics._shared.errors import InputError, UsageError
 from forensics.prnu.fingerprint import (
     Fingerprint,
@@ -71,7 +72,8 @@ from forensics.prnu.fingerprint import (
 )
 from forensics.prnu.match import QUERY_SIGMA, prepare_query, score_pair
 from forensics._shared.progress import Progress, no_progress
-from forensics.prnu.residual import median_residual, to_grey, zero_mean_cfa
+from forensics._shared.arrays import grey_luma
+from forensics.prnu.residual import median_residual, zero_mean_cfa
 from forensics.stats.scores import auc, bootstrap_eer, eer, eer_convex_hull
 
 __all__ = [
@@ -109,12 +111,6 @@ DIFFERENT_BELOW = 0.10
 #: An EER interval wider than this is flagged as weak evidence.
 WIDE_INTERVAL = 0.20
 AGEING_RESIDUALS = ("median", "wavelet")
-
-
-def _check_rng(rng: Any) -> np.random.Generator:
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError("rng must be a numpy.random.Generator (e.g. numpy.random.default_rng(seed))")
-    return rng
 
 
 def _pct(x: float) -> str:
@@ -359,7 +355,7 @@ def plan_set(
     UsageError
         If a requested count is not positive.
     """
-    _check_rng(rng)
+    rng = as_generator(rng)
     for label, value in (("fingerprint_images", fingerprint_images), ("score_images", score_images),
                          ("ageing_images", ageing_images)):
         if int(value) != value or value < 1:
@@ -496,7 +492,7 @@ def eer_verdict(
     -------
     EerVerdict
     """
-    _check_rng(rng)
+    rng = as_generator(rng)
     g = np.asarray(genuine, np.float64).ravel()
     i = np.asarray(impostor, np.float64).ravel()
     boot = bootstrap_eer(g, i, rng, n_boot=n_boot, level=level)
@@ -568,7 +564,7 @@ class MedianFingerprintBuilder(FingerprintBuilder):
         level = self.white_level if self.saturation_level is None else self.saturation_level
         for src, dst in zip(self.region.pieces(self.frame_shape), self.region.mosaic_slices(self.frame_shape)):
             piece = image[src]
-            grey = to_grey(piece)
+            grey = grey_luma(piece)
             sat = saturation_mask(piece, level, self.saturation_dilate)
             w_all[dst] = median_residual(grey, self.size)
             i_all[dst] = intensity(grey, self.white_level, self.black_level, sat, self.rolloff)
@@ -762,7 +758,7 @@ def ageing_table(
     statistic over the resampled pairs, leaving out pairs of a fingerprint with a
     copy of itself.  The consistency ratio is bootstrapped jointly with the means.
     """
-    _check_rng(rng)
+    rng = as_generator(rng)
     arrays = [np.asarray(f.K if isinstance(f, Fingerprint) else f, np.float32)
               for f in (*fingerprints_a, *fingerprints_b)]
     na, nb = len(fingerprints_a), len(fingerprints_b)
@@ -1022,7 +1018,7 @@ def same_device(
     UsageError
         Bad counts or options.
     """
-    _check_rng(rng)
+    rng = as_generator(rng)
     if ageing_residual not in AGEING_RESIDUALS:
         raise UsageError(f"ageing_residual={ageing_residual!r}: choose one of {', '.join(AGEING_RESIDUALS)}")
     allowed = {"white_level", "black_level", "saturation_level", "saturation_dilate", "rolloff", "workers"}

@@ -68,6 +68,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from forensics._shared.arrays import bits_full_scale
 from forensics._shared.errors import InputError, UsageError
 
 PARTIAL = 0
@@ -542,7 +543,7 @@ class SensorModel:
 
     @property
     def full_scale(self) -> float:
-        return float(2**self.bit_depth - 1)
+        return bits_full_scale(self.bit_depth)
 
     @property
     def dtype(self) -> np.dtype:

@@ -5,6 +5,7 @@ and scaled to the output bit depth by ``(2**bits − 1) / 255``.
 """
 from __future__ import annotations
 
+from forensics._shared.arrays import bits_full_scale
 from forensics.sensor.effects import Growth, Offset, Stuck
 from forensics._shared.errors import UsageError
 from forensics.sensor.model import SensorModel
@@ -53,7 +54,7 @@ def preset(name: str, shape: tuple[int, int], bit_depth: int = 8, t0: float = 0.
     if key not in PRESETS:
         raise UsageError(f"unknown sensor preset '{name}'; choose one of {', '.join(PRESETS)}")
     lam_ps, lam_s, a_ps = PRESETS[key]
-    scale = (2**bit_depth - 1) / 255.0
+    scale = bits_full_scale(bit_depth) / bits_full_scale(8)
     growth = Growth(rate_partial=lam_ps * rate_scale, rate_stuck=lam_s * rate_scale, amp_partial=a_ps * scale,
                     amp_stuck=A_S * scale, counting=counting)
     return SensorModel(shape=shape, bit_depth=bit_depth, effects=[growth, Offset(), Stuck()], t0=t0)

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from forensics._shared.arrays import bits_full_scale
+
 #: scikit-image sample images bundled with the package (no network needed).
 BUNDLED = ("camera", "astronaut", "coffee", "chelsea", "brick", "grass", "gravel", "rocket", "moon", "coins", "clock",
            "immunohistochemistry", "hubble_deep_field", "cell", "retina")
@@ -86,6 +88,6 @@ def scene(shape: tuple[int, int], rng: np.random.Generator, channels: int = 1, k
 def scene_image(shape: tuple[int, int], rng: np.random.Generator, channels: int = 1, bit_depth: int = 8,
                 kind: str = "mixed") -> np.ndarray:
     """A scene quantised to ``bit_depth`` bits (uint8 or uint16)."""
-    full = 2**bit_depth - 1
+    full = bits_full_scale(bit_depth)
     img = np.rint(scene(shape, rng, channels, kind) * full)
     return img.astype(np.uint8 if bit_depth <= 8 else np.uint16)

@@ -61,6 +61,7 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from forensics._shared.rng import as_generator
 from forensics._shared.errors import InputError, UsageError
 
 __all__ = [
@@ -288,12 +289,6 @@ def _as_scores(values: ArrayLike, name: str) -> NDArray[np.float64]:
                 "remove or replace them before computing score statistics"
             )
     return arr
-
-
-def _check_rng(rng: Any) -> np.random.Generator:
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError("rng must be a numpy.random.Generator (e.g. numpy.random.default_rng(seed))")
-    return rng
 
 
 def _check_boot(n_boot: int, level: float) -> None:
@@ -832,7 +827,7 @@ def bootstrap_eer(
     and time grow as ``n_boot * (n_genuine + n_impostor)``; replicates are
     processed in chunks.
     """
-    _check_rng(rng)
+    rng = as_generator(rng)
     _check_boot(n_boot, level)
     g = _as_scores(genuine, "genuine")
     i = _as_scores(impostor, "impostor")
@@ -881,7 +876,7 @@ def bootstrap_ci(
     >>> res.ci[0] < 0 < res.ci[1]
     True
     """
-    _check_rng(rng)
+    rng = as_generator(rng)
     _check_boot(n_boot, level)
     if not samples:
         raise UsageError("bootstrap_ci needs at least one sample")

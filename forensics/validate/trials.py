@@ -160,7 +160,7 @@ class Metric:
 
 def proportion(name: str, hits: int, n: int, lo: float | None = None, hi: float | None = None, note: str = "") -> Metric:
     """A proportion with its exact 95 % interval, checked against [lo, hi] when given."""
-    from forensics.defects.growth import clopper_pearson
+    from forensics.stats.counts import clopper_pearson
 
     value = hits / n if n else float("nan")
     passed = None

@@ -113,7 +113,7 @@ def test_validate_command(capsys, tmp_path):
     assert code == 2
 
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared/data/dresden-nikon"
+REAL = Path(__file__).resolve().parents[2].parent / "shared/data/dresden-nikon"
 
 
 @pytest.mark.realdata

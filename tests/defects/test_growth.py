@@ -14,15 +14,12 @@ from forensics.defects.growth import (
     Epoch,
     GrowthModel,
     chapman,
-    clopper_pearson,
     epochs_from_datasets,
     estimate_growth,
-    garwood,
     paper_gamma,
     paper_rate,
-    poisson_glm,
-    trend_test,
 )
+from forensics.stats.counts import clopper_pearson, garwood, midp_binomial, poisson_glm, trend_test
 from forensics.sensor.presets import preset
 from forensics.sensor.scenes import scene
 from forensics.io.stack import stack_stats
@@ -72,7 +69,6 @@ def test_clopper_pearson():
 
 
 def test_midp_binomial_is_inside_clopper_pearson():
-    from forensics.defects.growth import midp_binomial
 
     for x, n in ((0, 10), (3, 10), (10, 10), (17, 60)):
         lo, hi = midp_binomial(x, n)

@@ -12,10 +12,10 @@ import pytest
 import pywt
 from scipy import ndimage
 
+from forensics._shared.arrays import grey_luma
 from forensics._shared.errors import InputError
 from forensics.prnu.residual import (
     median_residual,
-    to_grey,
     wavelet_noise,
     wavelet_residual,
     wiener_dft,
@@ -182,7 +182,7 @@ def test_dtypes_give_the_same_residual_up_to_scale(synthetic):
         out = wavelet_residual(img)
         assert out.dtype == np.float32
         np.testing.assert_allclose(out / scale, ref, atol=1e-4 * np.abs(ref).max())
-    grey = np.rint(to_grey(u8)).astype(np.uint16) * 16  # 12-bit data in uint16, white level 4095·16/16
+    grey = np.rint(grey_luma(u8)).astype(np.uint16) * 16  # 12-bit data in uint16, white level 4095·16/16
     mosaic12 = (grey // 16).astype(np.uint16)
     a = wavelet_residual(mosaic12, white_level=4095)
     b = wavelet_residual(grey, white_level=4095 * 16)

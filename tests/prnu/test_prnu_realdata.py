@@ -21,7 +21,7 @@ import pytest
 from forensics.prnu.fingerprint import Fingerprint, FingerprintBuilder
 from forensics.prnu.match import PCE_THRESHOLD, score_matrix
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "dresden-nikon"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "dresden-nikon"
 REGION = "center:1024"
 
 pytestmark = [

@@ -422,7 +422,7 @@ def test_bad_bootstrap_arguments():
     with pytest.raises(UsageError):
         bootstrap_eer([1.0], [0.0], rng, level=1.0)
     with pytest.raises(TypeError):
-        bootstrap_eer([1.0], [0.0], 42)  # type: ignore[arg-type]
+        bootstrap_eer([1.0], [0.0], None)  # type: ignore[arg-type]
     with pytest.raises(InputError):
         bootstrap_ci(np.mean, [], rng=rng)
     with pytest.raises(UsageError):

@@ -171,7 +171,7 @@ def test_plan_set_small_sets_warn():
     with pytest.raises(UsageError):
         plan_set(100, np.random.default_rng(1), fingerprint_images=0)
     with pytest.raises(TypeError):
-        plan_set(100, 5)  # type: ignore[arg-type]
+        plan_set(100, None)  # type: ignore[arg-type]
 
 
 def test_expected_interval_width_matches_the_bootstrap():
@@ -342,7 +342,7 @@ def test_bad_inputs():
     with pytest.raises(UsageError):
         same_device((img for img in ok), ok, rng, region="full")
     with pytest.raises(TypeError):
-        same_device(ok, ok, 3, region="full")  # type: ignore[arg-type]
+        same_device(ok, ok, None, region="full")  # type: ignore[arg-type]
     with pytest.raises(InputError):  # 4 corners of 128 do not fit a 32×32 frame
         same_device(ok, ok, rng, ageing=False)
 

@@ -33,7 +33,7 @@ import pytest
 from forensics.prnu.fingerprint import parse_region
 from forensics.prnu.samedevice import ImageSet, same_device
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared/data/dresden-nikon"
+DATA = Path(__file__).resolve().parents[2].parent / "shared/data/dresden-nikon"
 CROP = "center:1024"
 COUNTS = dict(fingerprint_images=4, score_images=8, region="full", n_boot=1000)
 HALVES_CAMERA = "Nikon_D70s_1"  # the camera with the most images (10 flat + 5 natural)
