@@ -2005,14 +2005,10 @@ def _frames_to_add(ev: Evidence, a: str, b: str | None) -> str:
 # =========================================================================== entry point
 def base_model() -> list[Effect]:
     """The base model: every registered effect whose role is ``base``, at its defaults."""
-    import forensics.sensor.effects as _builtin  # noqa: F401
-
     return [cls() for cls in EFFECTS.values() if cls.role == "base"]
 
 
 def candidate_names(model_effects: list[Effect]) -> list[str]:
-    import forensics.sensor.effects as _builtin  # noqa: F401
-
     have = {e.key for e in model_effects}
     return [n for n, c in EFFECTS.items() if c.role == "candidate" and n not in have]
 
