@@ -70,14 +70,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-ageing-") as tmp:
         tmp = Path(tmp)
         print(f"generating {args.images} source images of {SHAPE[1]}×{SHAPE[0]} …", flush=True)
-        src = make_scenes(tmp / "src", args.images, SHAPE, seed=1, kind="texture")
+        src = make_scenes(tmp / "src", args.images, SHAPE, rng=1, kind="texture")
         src = open_dataset(tmp / "src")
         n_out = args.images * len(ages)
         t_floor = io_floor(src, tmp / "floor", len(ages))
         shutil.rmtree(tmp / "floor")
         model = preset(args.sensor, SHAPE)
         start = time.perf_counter()
-        age_dataset(src, tmp / "aged", model, ages, seed=2, start_year=2000.0, sensor_name=args.sensor)
+        age_dataset(src, tmp / "aged", model, ages, rng=2, start_year=2000.0, sensor_name=args.sensor)
         t_age = time.perf_counter() - start
         shutil.rmtree(tmp / "aged")
         growth = model.effect("growth")

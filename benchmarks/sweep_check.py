@@ -38,18 +38,18 @@ PIXEL_EFFECTS = ("prnu", "dark_current", "gain", "nonlinearity", "dsnu")
 
 def run_one(job: tuple[str, int]) -> dict:
     from forensics.fixtures.hidden import make_hidden
-    from forensics.check.core import check
+    from forensics.check import check
 
     effect, seed = job
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="sweep-check-") as tmp:
         data = Path(tmp) / "data"
-        make_hidden(effect, data, seed=seed)
+        make_hidden(effect, data, rng=seed)
         if effect == "none":
-            res = check(data, seed=seed)
+            res = check(data, rng=seed)
             base, added = res, None
         else:
-            added = check(data, add=[effect], seed=seed)
+            added = check(data, add=[effect], rng=seed)
             base = added.baseline
     out = {"effect": effect, "seed": seed, "seconds": time.perf_counter() - started,
            "base_flagged": base.flagged, "base_top": base.candidates[0].effect if base.candidates else None,

@@ -14,8 +14,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from forensics.validate import trials as V  # noqa: E402
@@ -23,19 +21,12 @@ from forensics.validate import trials as V  # noqa: E402
 
 def _defects(args):
     settings, seed, indices = args
-    pool = V.scene_pool(settings, np.random.default_rng([seed, 1]))
-    return [V.defects_trial(settings, pool, np.random.default_rng([seed, 2, i])) for i in indices]
+    return V.defects_records(settings, seed, indices)
 
 
 def _dating(args):
     settings, seed, indices = args
-    pool = V.scene_pool(settings, np.random.default_rng([seed, 3]))
-    sets, images = [], []
-    for i in indices:
-        rng = np.random.default_rng([seed, 4, i])
-        sets.append(V.set_dating_trial(settings, pool, rng, within=rng.random() < 0.25))
-        images.append(V.image_dating_trial(settings, pool, np.random.default_rng([seed, 5, i])))
-    return sets, images
+    return V.dating_records(settings, seed, indices)
 
 
 def markdown(result: V.ValidationResult) -> str:

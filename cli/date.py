@@ -30,10 +30,11 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
     from forensics.io.dataset import open_dataset
-    from forensics.defects.dating import date_dataset, date_image, dating_report
+    from forensics.defects.dating import date_dataset, date_image
     from forensics._shared.errors import InputError, UsageError
     from forensics.defects.growth import GrowthModel, epochs_from_datasets, estimate_growth
     from forensics.io.images import is_raw, read_image, read_raw
+    from forensics.report.defects import dating_report
 
     query = Path(args.query)
     if not query.exists():

@@ -65,8 +65,9 @@ def register(sub) -> None:
 
 def run_detect(args: argparse.Namespace) -> int:
     from forensics.io.dataset import open_dataset
-    from forensics.defects.detection import detect_dataset, detection_report
-    from forensics.sensor.model import PARTIAL, STUCK
+    from forensics.defects.detection import detect_dataset
+    from forensics.report.defects import detection_report
+    from forensics.sensor.catalogue import PARTIAL, STUCK
 
     ds = open_dataset(args.set)
     if args.report:
@@ -103,7 +104,8 @@ def run_growth(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
     from forensics.io.dataset import open_dataset
     from forensics._shared.errors import UsageError
-    from forensics.defects.growth import epochs_from_datasets, estimate_growth, growth_report
+    from forensics.defects.growth import epochs_from_datasets, estimate_growth
+    from forensics.report.defects import growth_report
 
     if len(args.sets) < 2:
         raise UsageError("growth needs at least two sets (epochs) of the same device taken at different dates")
@@ -147,13 +149,6 @@ def run_growth(args: argparse.Namespace) -> int:
 
     emit(args, summary, lambda: {**result.to_dict(), "model": args.output})
     if args.report:
-        from forensics.defects.detection import defect_map_figure, histogram_figure
-
-        rep = growth_report(result)
-        for i, ep in enumerate(epochs):
-            rep.heading(f"Epoch {ep.date:.2f}: {ep.label}")
-            rep.figure(histogram_figure(ep.detection), f"histogram_{i}", "Accumulated histogram of d̂ with τ.")
-            rep.figure(defect_map_figure(ep.detection), f"map_{i}", "Detected defects.")
-        path = rep.write(args.report, force=args.force)
+        path = growth_report(result, epochs=epochs).write(args.report, force=args.force)
         info(args, f"report: {path}")
     return 0

@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     from forensics.demo import run_demo
 
     info(args, f"forensics demo: writing {args.out}/ …")
-    result = run_demo(args.out, seed=args.seed, force=args.force, progress=progress_for(args), only=args.only)
+    result = run_demo(args.out, rng=args.seed, force=args.force, progress=progress_for(args), only=args.only)
 
     def summary() -> str:
         lines = []

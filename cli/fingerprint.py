@@ -98,39 +98,24 @@ def run_build(args: argparse.Namespace) -> int:
 
 def run_match(args: argparse.Namespace) -> int:
     from forensics.io.dataset import open_dataset
-    from forensics._shared.errors import UsageError
     from forensics.prnu.fingerprint import Fingerprint
-    from forensics.prnu.match import PCE_THRESHOLD, score_matrix
+    from forensics.prnu.match import match_set
+    from forensics.report.prnu import match_report
 
     fp = Fingerprint.load(args.fingerprint)
     ds = open_dataset(args.set)
-    if args.metric == "ncc" and args.shift_range != 0:
-        raise UsageError("--shift-range applies to PCE only; drop it or use --metric pce")
-    if fp.region.startswith("corners") and args.shift_range != 0:
+    if fp.region.startswith("corners") and args.shift_range != 0 and args.metric == "pce":
         warn("a shift search on a 'corners' fingerprint compares unrelated patches; zero shift is the right test")
-    threshold = args.threshold if args.threshold is not None else (PCE_THRESHOLD if args.metric == "pce" else None)
     info(args, f"scoring {len(ds)} images of {ds.root} against {args.fingerprint} ({args.metric}) …")
-    scores, details = score_matrix([fp], ds.frames, args.metric, sigma=args.sigma, shift_range=args.shift_range,
-                                   progress=progress_for(args), total=len(ds), details=True)
-    rows = []
-    for frame, value, d in zip(ds.frames, scores[0], details[0]):
-        decision = None if threshold is None else bool(value >= threshold)
-        rows.append({"file": frame.file, "score": float(value), "ncc": d.ncc, "rotation": d.rotation,
-                     "pce": d.pce.to_dict() if d.pce is not None else None, "match": decision})
-    n_match = sum(1 for r in rows if r["match"])
-    search = ("zero shift" if args.shift_range == 0 else
-              "all circular shifts" if args.shift_range is None else f"shifts up to ±{args.shift_range}")
-    payload = {
-        "fingerprint": str(args.fingerprint), "set": str(ds.root), "region": fp.region, "metric": args.metric,
-        "threshold": threshold, "shift_search": search if args.metric == "pce" else None,
-        "n_images": len(rows), "n_match": n_match if threshold is not None else None, "scores": rows,
-    }
+    result = match_set(fp, ds, args.metric, threshold=args.threshold, shift_range=args.shift_range, sigma=args.sigma,
+                       progress=progress_for(args), name=str(args.fingerprint))
+    payload = result.to_dict()
 
     def summary() -> str:
         return _match_table(payload)
 
     if args.report:
-        _match_report(payload).write(args.report, force=args.force)
+        match_report(result).write(args.report, force=args.force)
         info(args, f"report: {Path(args.report) / 'index.html'}")
     emit(args, summary, payload)
     return 0
@@ -169,38 +154,3 @@ def _match_table(payload: dict[str, Any]) -> str:
     else:
         lines.append(f"{payload['n_match']} of {payload['n_images']} images reach the threshold {thr:g}")
     return "\n".join(lines)
-
-
-def _match_report(payload: dict[str, Any]):
-    import numpy as np
-
-    from forensics.report.html import Report, new_figure
-
-    rep = Report(f"Fingerprint match: {payload['fingerprint']}")
-    rep.text(f"{payload['n_images']} images of {payload['set']}, region {payload['region']}, metric "
-             f"{payload['metric'].upper()}" + (f" at {payload['shift_search']}" if payload["metric"] == "pce" else "")
-             + (f", threshold {payload['threshold']:g}." if payload["threshold"] is not None else ", no threshold."))
-    values = np.array([r["score"] for r in payload["scores"]])
-    fig, ax = new_figure()
-    finite = values[np.isfinite(values)]
-    if payload["metric"] == "pce" and finite.size and finite.max() > 0:
-        # PCE spans decades: histogram of sign·log10(1 + |PCE|)
-        shown = np.sign(finite) * np.log10(1 + np.abs(finite))
-        ax.hist(shown, bins=min(40, max(5, finite.size)), color="C0")
-        ax.set_xlabel("sign · log10(1 + |PCE|)")
-        if payload["threshold"] is not None:
-            t = payload["threshold"]
-            ax.axvline(np.sign(t) * np.log10(1 + abs(t)), ls="--", color="0.3", label=f"threshold {t:g}")
-            ax.legend(frameon=False)
-    else:
-        ax.hist(finite, bins=min(40, max(5, finite.size)), color="C0")
-        ax.set_xlabel(payload["metric"].upper())
-        if payload["threshold"] is not None:
-            ax.axvline(payload["threshold"], ls="--", color="0.3", label=f"threshold {payload['threshold']:g}")
-            ax.legend(frameon=False)
-    ax.set_ylabel("images")
-    rep.figure(fig, "scores", "Score of each image against the fingerprint.")
-    rep.table(["file", payload["metric"].upper(), "NCC", "rotation", "decision"],
-              [[r["file"], r["score"], r["ncc"], 90 * r["rotation"],
-                "—" if r["match"] is None else ("match" if r["match"] else "no match")] for r in payload["scores"]])
-    return rep

@@ -75,12 +75,13 @@ def run_effects(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------- check
 def run_check(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
-    from forensics.check.core import check, check_report
+    from forensics.check import check
+    from forensics.report.check import check_report
 
     if args.report:
         refuse_existing(args.report, args.force)
     info(args, f"forensics model check: reading {args.data} …")
-    result = check(args.data, add=args.add, seed=args.seed, progress=progress_for(args))
+    result = check(args.data, add=args.add, rng=args.seed, progress=progress_for(args))
     if args.report:
         path = check_report(result, title=f"Model check: {args.data}").write(args.report, force=args.force)
         info(args, f"report: {path}")
@@ -105,7 +106,7 @@ def _p(v: float | None) -> str:
 
 
 def format_check(result: Any) -> str:
-    """The human summary of a :class:`forensics.check.core.CheckResult`."""
+    """The human summary of a :class:`forensics.check.CheckResult`."""
     d = result.data
     lines = [f"Data: {d['frames']} frames, {d['conditions']} conditions ({d['repeated_conditions']} repeated), "
              f"{len(d['epochs'])} epochs, {d['size'][0]}×{d['size'][1]} px, full scale {d['full_scale']:g} DN, "
@@ -159,5 +160,7 @@ def format_check(result: Any) -> str:
 
 
 def _added(result: Any) -> list[str]:
-    base = set(result.baseline.effects) if result.baseline is not None else {"growth", "offset", "stuck", "read_noise"}
+    from forensics.check import base_model
+
+    base = set(result.baseline.effects) if result.baseline is not None else {e.key for e in base_model()}
     return [e for e in result.effects if e not in base]

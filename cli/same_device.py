@@ -44,11 +44,10 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from forensics._shared.atomic import refuse_existing
     from forensics.io.dataset import open_dataset
     from forensics.prnu.samedevice import same_device
+    from forensics.report.prnu import same_device_report
 
     if args.report:
         refuse_existing(args.report, args.force)  # before the work, not after
@@ -58,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     if names[0] == names[1]:
         names = (str(args.set_a), str(args.set_b))
     result = same_device(
-        ds_a, ds_b, np.random.default_rng(args.seed),
+        ds_a, ds_b, args.seed,
         fingerprint_images=args.fingerprint_images, score_images=args.score_images, region=args.region,
         n_boot=args.bootstrap, ageing=args.ageing_fingerprints > 0,
         ageing_fingerprints=max(args.ageing_fingerprints, 0), ageing_images=args.ageing_images,
@@ -67,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     for message in result.warnings:
         warn(message)
     if args.report:
-        path = _report(result, args).write(args.report, force=args.force)
+        path = same_device_report(result, _command(args)).write(args.report, force=args.force)
         info(args, f"report: {path}")
     payload = result.to_dict()
     payload["parameters"]["seed"] = args.seed
@@ -84,17 +83,15 @@ def _name(folder: str) -> str:
 
 def summary(result) -> str:
     """The human summary of a :class:`forensics.prnu.samedevice.SameDeviceResult`."""
-    import numpy as np
-
     e = result.eer
     lines = [f"Same-device test (NCC on region {result.region}, {e.n_boot} bootstrap replicates)"]
     for s in (result.set_a, result.set_b):
         p = s.plan
         lines.append(f"  {p.name}: {p.n_available} images; fingerprint from {len(p.fingerprint)}, "
                      f"{len(p.score)} scored")
-    g, i = result.genuine, result.impostor
-    lines.append(f"  matching scores (own set's fingerprint):       n = {g.size:5d}, median NCC {np.median(g):.4f}")
-    lines.append(f"  non-matching scores (other set's fingerprint): n = {i.size:5d}, median NCC {np.median(i):.4f}")
+    g_median, i_median = result.median_scores
+    lines.append(f"  matching scores (own set's fingerprint):       n = {e.n_genuine:5d}, median NCC {g_median:.4f}")
+    lines.append(f"  non-matching scores (other set's fingerprint): n = {e.n_impostor:5d}, median NCC {i_median:.4f}")
     lines.append(f"  EER {100 * e.eer:.2f} %   {100 * e.level:g} % interval [{100 * e.ci[0]:.2f} %, "
                  f"{100 * e.ci[1]:.2f} %]   (AUC {e.auc:.3f})")
     lines.append(f"  verdict: {e.verdict}")
@@ -112,14 +109,9 @@ def summary(result) -> str:
     return "\n".join(lines)
 
 
-def _report(result, args: argparse.Namespace):
-    from forensics.report.html import Report
-    from forensics.prnu.samedevice import add_to_report
-
-    rep = Report(f"Same device? {result.set_a.plan.name} and {result.set_b.plan.name}")
-    rep.preformatted(f"forensics same-device {args.set_a} {args.set_b} --fingerprint-images {args.fingerprint_images} "
-                     f"--score-images {args.score_images} --region {args.region} --seed {args.seed} "
-                     f"--bootstrap {args.bootstrap} --ageing-fingerprints {args.ageing_fingerprints} "
-                     f"--ageing-images {args.ageing_images} --ageing-residual {args.ageing_residual}")
-    add_to_report(result, rep)
-    return rep
+def _command(args: argparse.Namespace) -> str:
+    """The command line that reproduces this run (shown at the top of the report)."""
+    return (f"forensics same-device {args.set_a} {args.set_b} --fingerprint-images {args.fingerprint_images} "
+            f"--score-images {args.score_images} --region {args.region} --seed {args.seed} "
+            f"--bootstrap {args.bootstrap} --ageing-fingerprints {args.ageing_fingerprints} "
+            f"--ageing-images {args.ageing_images} --ageing-residual {args.ageing_residual}")

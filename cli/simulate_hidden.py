@@ -26,7 +26,7 @@ def register(inner) -> None:
 def run(args: argparse.Namespace) -> int:
     from forensics.fixtures.hidden import make_hidden
 
-    result = make_hidden(args.effect, args.out, seed=args.seed, force=args.force, progress=progress_for(args))
+    result = make_hidden(args.effect, args.out, rng=args.seed, force=args.force, progress=progress_for(args))
 
     def summary() -> str:
         truth = result.truth

@@ -34,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
     from forensics._shared.errors import UsageError
     from forensics.sensor.presets import PRESETS
-    from forensics.validate.trials import ValidationSettings, validate_dating, validate_defects, validation_report
+    from forensics.report.validate import validation_report
+    from forensics.validate.trials import ValidationSettings, validate_dating, validate_defects
 
     from forensics.cli.simulate import parse_size
 
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     settings = ValidationSettings(sensor=args.sensor.upper(), shape=shape, bit_depth=args.bits,
                                   read_noise=args.read_noise, images=args.images, scenes=args.scenes)
     fn = validate_defects if args.what == "defects" else validate_dating
-    result = fn(settings, args.trials, seed=args.seed, progress=progress_for(args))
+    result = fn(settings, args.trials, rng=args.seed, progress=progress_for(args))
 
     def summary() -> str:
         rows = result.table()

@@ -1,0 +1,28 @@
+"""Plumbing every other subpackage uses and none of them owns: the error types the CLI maps to exit codes,
+atomic output (a file or folder appears whole or not at all), the progress convention, the exact fast
+median filter, array helpers (grey conversions, full scale) and the one way random numbers enter the
+toolkit (``rng`` is a Generator or an integer seed, see :mod:`forensics._shared.rng`).  It imports
+nothing else of the package.
+"""
+from forensics._shared.arrays import bits_full_scale, full_scale, grey_luma, grey_mean, infer_full_scale
+from forensics._shared.atomic import (
+    atomic_directory,
+    atomic_file,
+    refuse_existing,
+    refuse_inputs,
+    write_json,
+    write_text,
+)
+from forensics._shared.errors import ForensicsError, InputError, UsageError
+from forensics._shared.filters import median_filter
+from forensics._shared.progress import Progress, choose_progress, no_progress, tqdm_progress
+from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record, spawn
+
+__all__ = [
+    "bits_full_scale", "full_scale", "grey_luma", "grey_mean", "infer_full_scale",
+    "atomic_directory", "atomic_file", "refuse_existing", "refuse_inputs", "write_json", "write_text",
+    "ForensicsError", "InputError", "UsageError",
+    "median_filter",
+    "Progress", "choose_progress", "no_progress", "tqdm_progress",
+    "RngLike", "as_generator", "keyed_generator", "seed_record", "spawn",
+]

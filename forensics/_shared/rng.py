@@ -4,8 +4,9 @@ Convention (the same in every module): a public function that draws random numbe
 ``rng`` that accepts either a :class:`numpy.random.Generator` or an integer seed (:data:`RngLike`);
 it calls :func:`as_generator` once and passes the generator down.  An integer seed ``s`` gives exactly
 ``numpy.random.default_rng(s)``, so ``f(rng=7)`` and ``f(rng=np.random.default_rng(7))`` draw the same
-numbers.  Independent work items (images, devices, trials) draw from child generators made by
-:func:`spawn` (``SeedSequence.spawn``), never from the order in which they happen to run.  There is no
+numbers.  Independent work items (images, devices, trials) draw from their own streams — children
+made by :func:`spawn` (``SeedSequence.spawn``) or the keyed sub-stream of :func:`keyed_generator`
+(``default_rng([seed, *key])`` for an integer seed) — never from the order in which they run.  There is no
 default seed and no global state: ``None`` is refused.
 """
 from __future__ import annotations
@@ -49,6 +50,26 @@ def spawn(rng: RngLike, n: int) -> list[np.random.Generator]:
     if isinstance(rng, (int, np.integer)) and not isinstance(rng, (bool, np.bool_)):
         return [np.random.default_rng(s) for s in np.random.SeedSequence(int(rng)).spawn(n)]
     return list(as_generator(rng).spawn(n))
+
+
+def keyed_generator(rng: RngLike, *key: int) -> np.random.Generator:
+    """The generator of the sub-stream ``key`` of ``rng``: ``default_rng([seed, *key])`` for an integer seed.
+
+    For a Generator (or SeedSequence) the key extends its seed sequence's entropy, keeping its spawn key,
+    so ``rng=7`` and ``rng=default_rng(7)`` give the same sub-streams, children made by
+    :func:`spawn` give different ones, and the generator's own state is neither
+    used nor advanced: a work item's stream depends on the run's seed and the item's key only, whatever
+    order or process it runs in.
+    """
+    if isinstance(rng, (int, np.integer)) and not isinstance(rng, (bool, np.bool_)):
+        if rng < 0:
+            raise TypeError(f"a seed must be a non-negative integer, got {rng}")
+        return np.random.default_rng([int(rng), *(int(k) for k in key)])
+    seq = rng if isinstance(rng, np.random.SeedSequence) else as_generator(rng).bit_generator.seed_seq
+    entropy = seq.entropy
+    base = [int(e) for e in entropy] if isinstance(entropy, (list, tuple, np.ndarray)) else [int(entropy)]
+    return np.random.default_rng(np.random.SeedSequence([*base, *(int(k) for k in key)], spawn_key=seq.spawn_key,
+                                                        pool_size=seq.pool_size))
 
 
 def seed_record(rng: RngLike) -> Any:

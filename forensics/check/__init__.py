@@ -1,0 +1,52 @@
+"""Model against measurement: fit the sensor model, show where it fails, name the missing effect.
+
+:func:`check` takes a dataset (images + ``manifest.csv``) and a model (the base model — ``growth``,
+``offset``, ``stuck``, ``read_noise`` and saturation at the bit depth — plus any added effects), and returns
+a :class:`CheckResult`: the fitted parameters, the held-out error, goodness-of-fit p-values, a table of
+checks, and the candidate effects ranked by how much adding each would improve the fit.
+
+The stages, one module each, data flowing one way:
+
+``measurements``  frames → per-condition stack statistics (:class:`Measurements`); ``scene`` the
+                  leave-one-out quadratic scene estimate
+``detection``     stuck and partially stuck pixels per epoch (onsets: :mod:`forensics.defects.onsets`)
+``evidence``      what models are fitted to (:class:`Evidence`): ``arrivals`` (counts, sites, the arrival
+                  model's predictions), ``pixels`` (pixel classes, scene estimates, noise floor, variance
+                  bins), ``prediction`` (forward models), ``streams`` (Monte-Carlo streams)
+``fit``           :func:`fit_model` → :class:`FittedModel` (``pixelfit``, ``projection``, ``params``: new
+                  effects, never mutated ones)
+``gof``           held-out error per pixel class and each channel's goodness of fit
+``diagnosis``     ``signatures`` and ``scoretests`` of the candidates, ranking and flags; ``design``
+                  warnings
+``result``        the result dataclasses (``to_dict()`` for ``--json``)
+``run``           :func:`check`, :func:`run_check`, :func:`base_model`, :func:`candidate_names`
+
+The measurements are reduced to four *channels* of statistics — pixel, variance, growth, spatial — and
+every effect acts on one or more of them according to its :class:`~forensics.sensor.model.Stage`, so
+nothing here depends on an effect's name.  The report is :func:`forensics.report.check.check_report`.
+"""
+from forensics.check.classes import CHANNELS, CLASSES
+from forensics.check.diagnosis import FLAG_DBIC, FLAG_P, diagnose
+from forensics.check.evidence import Evidence
+from forensics.check.fit import FittedModel, fit_model
+from forensics.check.measurements import Group, Measurements, load_measurements
+from forensics.check.result import (
+    Candidate,
+    ChannelTest,
+    CheckResult,
+    CheckRow,
+    ParamEstimate,
+    PatternEstimate,
+    PlotData,
+)
+from forensics.check.run import base_model, candidate_names, check, resolve_effects, run_check
+from forensics.check.scene import KERNEL, KERNEL_VAR, loo_quadratic_kernel, scene_estimate
+from forensics.check.signatures import Signature
+
+__all__ = [
+    "check", "run_check", "base_model", "candidate_names", "resolve_effects",
+    "Measurements", "Group", "load_measurements", "Evidence", "FittedModel", "fit_model", "diagnose",
+    "CheckResult", "Candidate", "ChannelTest", "CheckRow", "ParamEstimate", "PatternEstimate", "PlotData",
+    "Signature", "CLASSES", "CHANNELS", "FLAG_DBIC", "FLAG_P",
+    "KERNEL", "KERNEL_VAR", "loo_quadratic_kernel", "scene_estimate",
+]

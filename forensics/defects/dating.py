@@ -38,7 +38,7 @@ from forensics.defects.detection import DetectionResult, detect_dataset
 from forensics._shared.errors import InputError
 from forensics.defects.growth import Z_RECHECK, GrowthModel, _z_at
 from forensics.stats.counts import LEVEL, midp_binomial
-from forensics.sensor.model import STUCK
+from forensics.sensor.catalogue import STUCK
 from forensics._shared.progress import Progress, no_progress
 
 #: Weight of the "anything else" component in the per-defect likelihoods (texture, edges).
@@ -306,66 +306,3 @@ def date_image(model: GrowthModel, image: np.ndarray, cfa: str | None = None) ->
                         "only be placed that coarsely")
     return ImageDating(float(estimates[best]), intervals[best], best, intervals, ll, groups,
                        [int(np.sum(first == g)) for g in groups], len(model.catalogue), (lp - la).tolist(), warnings)
-
-
-# =========================================================================== figures
-def set_dating_figure(model: GrowthModel, result: SetDating):
-    """Reference counts against date, with the query's estimate and interval."""
-    from forensics.report.html import new_figure
-
-    fig, ax = new_figure(6.4, 4.0)
-    t = np.asarray(model.dates)
-    cum = np.cumsum([model.counts["partial"][0] + model.counts["stuck"][0]]
-                    + [a + b for a, b in zip(model.new["partial"], model.new["stuck"])])
-    ax.plot(t, cum, "o-", label="reference epochs: defects first seen by then")
-    lo, hi = result.interval
-    lo_v = lo if lo is not None else min(t[0], result.estimate) - 1
-    hi_v = hi if hi is not None else max(t[-1], result.estimate) + 1
-    ax.axvspan(lo_v, hi_v, color="C1", alpha=0.25, label=f"query: {result.level:.0%} interval")
-    ax.axvline(result.estimate, color="C1", lw=2, label=f"query estimate {result.estimate:.2f}")
-    ax.set_xlabel("date (year)")
-    ax.set_ylabel("defects")
-    ax.legend(fontsize=8)
-    return fig
-
-
-def likelihood_figure(result: ImageDating):
-    """Relative likelihood of each onset interval (single-image dating)."""
-    from forensics.report.html import new_figure
-
-    fig, ax = new_figure(6.4, 3.6)
-    post = result.posterior
-    labels = []
-    for lo, hi in result.intervals:
-        labels.append(f"{'…' if lo is None else f'{lo:.1f}'}–{'…' if hi is None else f'{hi:.1f}'}")
-    colours = ["C3" if j == result.best else "C0" for j in range(len(post))]
-    ax.bar(range(len(post)), post, color=colours)
-    ax.set_xticks(range(len(post)))
-    ax.set_xticklabels(labels, rotation=45, ha="right", fontsize=7)
-    ax.set_ylabel("relative likelihood")
-    ax.set_xlabel("onset interval (date range)")
-    return fig
-
-
-def dating_report(model: GrowthModel, result: SetDating | ImageDating, query: str = "") -> Any:
-    from forensics.report.html import Report
-
-    rep = Report("Dating from sensor defects")
-    lo, hi = result.interval
-    rng = f"[{'…' if lo is None else f'{lo:.3f}'}, {'…' if hi is None else f'{hi:.3f}'}]"
-    rep.text(f"{query + ': ' if query else ''}estimated capture date {result.estimate:.3f} (interval {rng}). "
-             f"Reference epochs: {', '.join(f'{d:.2f}' for d in model.dates)}; catalogue of "
-             f"{len(model.catalogue)} defects; analysed area {model.area_mp:.4g} MP.")
-    for w in result.warnings:
-        rep.text(w, note=True)
-    if isinstance(result, SetDating):
-        rep.text(f"Position: {result.position}. Method: {result.method}.")
-        rep.table(["quantity", "value"], [[k, v] for k, v in result.counts.items()])
-        rep.figure(set_dating_figure(model, result), "set_dating", "Reference defect counts and the query's date.")
-    else:
-        rep.figure(likelihood_figure(result), "dating_likelihood",
-                   "Relative likelihood of each onset interval (Fridrich–Goljan); red: the maximum.")
-        rep.table(["interval", "from", "to", "log-likelihood"],
-                  [[j, lo_ if lo_ is not None else "…", hi_ if hi_ is not None else "…", ll]
-                   for j, ((lo_, hi_), ll) in enumerate(zip(result.intervals, result.log_likelihood))])
-    return rep

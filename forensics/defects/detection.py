@@ -40,7 +40,7 @@ from scipy import ndimage, stats
 from forensics._shared.arrays import full_scale, grey_mean
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.filters import median_filter
-from forensics.sensor.model import KIND_NAMES, PARTIAL, STUCK
+from forensics.sensor.catalogue import KIND_NAMES, PARTIAL, STUCK
 from forensics._shared.progress import Progress, no_progress
 from forensics.io.stack import StackAccumulator, StackStats
 
@@ -522,65 +522,3 @@ def detect_dataset(ds: Any, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SI
     cfa = dataset_cfa(ds)
     return detect(stack, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance, cfa=cfa,
                   full_scale=full_scale(stack.minimum.dtype), threads=threads)
-
-
-# =========================================================================== report figures
-def histogram_figure(result: DetectionResult):
-    """The accumulated histogram: pixels above each threshold, log scale, with τ and the normal expectation."""
-    from forensics.report.html import new_figure
-
-    fig, ax = new_figure(6.4, 4.0)
-    x = result.hist_thresholds
-    ax.step(x, np.maximum(result.hist_counts, 0.5), where="post", label="pixels with d̂ above x")
-    ax.plot(x, np.maximum(result.hist_expected, 1e-3), "--", color="C2", label="normal model (robust fit)")
-    for fit in result.fits[:1]:
-        ax.axvline(fit.tau, color="C3", lw=1.5, label=f"τ = {fit.tau:.4g} DN")
-    ax.set_yscale("log")
-    ax.set_ylim(0.5, max(2.0, float(result.hist_counts.max()) * 2))
-    ax.set_xlabel("threshold x on d̂ (DN)")
-    ax.set_ylabel("number of pixels with d̂ > x")
-    ax.legend(fontsize=8)
-    return fig
-
-
-def defect_map_figure(result: DetectionResult, title: str = ""):
-    """Where the defects are, over the analysed region."""
-    from forensics.report.html import new_figure
-
-    h, w = result.shape
-    fig, ax = new_figure(6.4, 6.4 * h / w + 0.6)
-    if result.mask is not None:
-        ax.imshow(result.mask, cmap="Greys_r", vmin=-1, vmax=1.5, interpolation="nearest")
-    for kind, marker, colour, label in ((PARTIAL, "o", "C0", "partially stuck"), (STUCK, "s", "C3", "stuck")):
-        sel = result.kind == kind
-        ax.scatter(result.x[sel], result.y[sel], s=18, marker=marker, facecolors="none", edgecolors=colour,
-                   label=f"{label} ({int(sel.sum())})")
-    ax.set_xlim(-0.5, w - 0.5)
-    ax.set_ylim(h - 0.5, -0.5)
-    ax.set_title(title or "defect map (grey: analysed region)", fontsize=9)
-    ax.legend(fontsize=8, loc="upper right")
-    return fig
-
-
-def detection_report(result: DetectionResult, title: str = "Defect detection", source: str = "") -> Any:
-    """An HTML report of one detection: summary, threshold, accumulated histogram, map, table."""
-    from forensics.report.html import Report
-
-    rep = Report(title)
-    rep.text(f"{source + ': ' if source else ''}{result.n_images} images of {result.shape[1]}×{result.shape[0]}; "
-             f"analysed region: {result.mask_spec.describe()} ({result.megapixels:.4g} MP). "
-             f"Median kernel q = {result.q}.")
-    for w in result.warnings:
-        rep.text(w, note=True)
-    rep.table(["channel", "center (DN)", "σ = 1.4826·MAD (DN)", "τ (DN)", "pixels"],
-              [[f.name, f.center, f.scale, f.tau, f.n_pixels] for f in result.fits])
-    rep.text(f"{result.count(PARTIAL)} partially stuck and {result.count(STUCK)} stuck pixels.")
-    rep.figure(histogram_figure(result), "accumulated_histogram",
-               "Accumulated histogram of d̂ = mean − median_q(mean): pixels above each threshold. Where the "
-               "measured curve leaves the normal model is where defects begin; τ is marked.")
-    rep.figure(defect_map_figure(result), "defect_map", "Detected defects over the analysed region.")
-    rows = result.defect_rows()[:200]
-    if rows:
-        rep.table(list(rows[0]), [list(r.values()) for r in rows],
-                  caption=None if len(result.x) <= 200 else f"first 200 of {len(result.x)}")
-    return rep

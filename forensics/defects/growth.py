@@ -38,13 +38,13 @@ import numpy as np
 from scipy import stats
 
 from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect_dataset
+from forensics.defects.onsets import Z_RECHECK, first_epochs, presence_matrix
+from forensics.defects.onsets import z_at as _z_at  # noqa: F401  (dating reads it from here)
 from forensics._shared.errors import InputError
 from forensics.stats.counts import LEVEL, TrendTest, garwood, trend_test
-from forensics.sensor.model import KIND_CODES, KIND_NAMES, PARTIAL, STUCK
+from forensics.sensor.catalogue import KIND_CODES, KIND_NAMES, PARTIAL, STUCK
 from forensics._shared.progress import Progress, no_progress
 
-#: z above which a site already counts as present when looking back for a defect's first epoch.
-Z_RECHECK = 3.0
 MODEL_FORMAT = "forensics-growth-model/1"
 
 
@@ -200,67 +200,6 @@ class CatalogueEntry:
         return cls(int(obj["x"]), int(obj["y"]), KIND_CODES[obj["kind"]], float(obj["amplitude"]),
                    int(obj["first_epoch"]), None if obj.get("onset_lo") is None else float(obj["onset_lo"]),
                    float(obj["onset_hi"]), int(obj.get("seen", 1)), int(obj.get("possible", 1)))
-
-
-def _z_at(detection: DetectionResult, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """z of d̂ at the given sites (−inf where the epoch kept no d̂ image or the site is outside its region)."""
-    if detection.d_hat is None:
-        return np.full(len(xs), -np.inf)
-    z = np.full(len(xs), -np.inf)
-    for fit_index, fit in enumerate(detection.fits):
-        if detection.cfa:
-            sel = ((ys % 2) * 2 + (xs % 2)) == fit_index
-        else:
-            sel = np.ones(len(xs), bool)
-        z[sel] = (detection.d_hat[ys[sel], xs[sel]] - fit.center) / fit.scale
-    if detection.mask is not None:
-        z[~detection.mask[ys, xs]] = -np.inf
-    return z
-
-
-def first_epochs(epochs: Sequence[Epoch], kind: int, z_recheck: float = Z_RECHECK) -> dict[tuple[int, int], int]:
-    """For every site detected (as ``kind``) at some epoch, the first epoch at which it is present.
-
-    A site first detected at epoch i counts as present at an earlier epoch j
-    when its z there exceeds ``z_recheck`` (for stuck sites: when it was
-    constant there), so noise around τ does not make old defects look new.
-    """
-    first: dict[tuple[int, int], int] = {}
-    for i, ep in enumerate(epochs):
-        for site in ep.detection.sites(kind):
-            if site not in first:
-                first[site] = i
-    if not first:
-        return first
-    sites = np.array(list(first), dtype=np.int64)
-    start = np.array(list(first.values()))
-    for j, ep in enumerate(epochs):
-        later = start > j
-        if not later.any():
-            continue
-        xs, ys = sites[later, 0], sites[later, 1]
-        if kind == PARTIAL:
-            present = _z_at(ep.detection, xs, ys) > z_recheck
-        else:
-            present = np.array([s in ep.detection.sites(STUCK) for s in zip(xs.tolist(), ys.tolist())], bool)
-        idx = np.nonzero(later)[0][present]
-        start[idx] = j
-    return {tuple(s): int(e) for s, e in zip(sites.tolist(), start)}
-
-
-def presence_matrix(epochs: Sequence[Epoch], sites: list[tuple[int, int]], kind: int,
-                    z_recheck: float = Z_RECHECK) -> np.ndarray:
-    """(epochs × sites) booleans: the site shows the defect at that epoch (detected, or z > z_recheck; stuck: constant)."""
-    out = np.zeros((len(epochs), len(sites)), bool)
-    if not sites:
-        return out
-    arr = np.array(sites, dtype=np.int64)
-    for j, ep in enumerate(epochs):
-        found = ep.detection.sites(kind)
-        out[j] = [s in found for s in sites]
-        if kind == PARTIAL:
-            out[j] |= _z_at(ep.detection, arr[:, 0], arr[:, 1]) > z_recheck
-    return out
 
 
 def build_catalogue(epochs: Sequence[Epoch], z_recheck: float = Z_RECHECK) -> list[CatalogueEntry]:
@@ -552,61 +491,3 @@ class GrowthModel:
 
     def mask_spec(self) -> MaskSpec:
         return MaskSpec.from_dict(self.detection.get("mask", {}))
-
-
-# =========================================================================== figures
-def counts_figure(result: GrowthResult):
-    """Cumulative defects per epoch with Garwood 95 % intervals and the constant-rate fit."""
-    from forensics.report.html import new_figure
-
-    fig, ax = new_figure(6.4, 4.0)
-    t = np.asarray(result.dates)
-    for kg, colour in ((result.partial, "C0"), (result.stuck, "C3")):
-        cum = np.cumsum([kg.counts[0]] + kg.new)
-        if cum.max() == 0:
-            continue
-        ci = np.array([garwood(int(c)) for c in cum])
-        ax.errorbar(t, cum, yerr=[cum - ci[:, 0], ci[:, 1] - cum], fmt="o", color=colour, capsize=3,
-                    label=f"{kg.kind}: cumulative count (Garwood 95 %)")
-        grid = np.linspace(t[0], t[-1], 50)
-        ax.plot(grid, cum[0] + kg.rate.rate * result.area_mp * (grid - t[0]), color=colour, lw=1,
-                label=f"{kg.kind}: {kg.rate.rate:.3g} [{kg.rate.ci[0]:.3g}, {kg.rate.ci[1]:.3g}] /MP/yr")
-        for lo in (kg.rate.ci[0], kg.rate.ci[1]):
-            ax.plot(grid, cum[0] + lo * result.area_mp * (grid - t[0]), color=colour, lw=0.6, ls=":")
-    ax.set_xlabel("capture date (year)")
-    ax.set_ylabel("defects (first seen by each epoch)")
-    ax.legend(fontsize=7)
-    return fig
-
-
-def growth_report(result: GrowthResult, title: str = "Defect growth") -> Any:
-    from forensics.report.html import Report
-
-    rep = Report(title)
-    th = result.threshold
-    rep.text(f"{len(result.dates)} epochs of {result.shape[1]}×{result.shape[0]} images, analysed region "
-             f"{result.area_mp:.4g} MP, threshold {'σ = %g' % th['sigma'] if th.get('sigma') else 'τ given'} "
-             f"(τ per epoch: {', '.join(f'{v:.4g}' for v in th['tau_per_epoch'])} DN), q = {th['q']}.")
-    for w in result.warnings:
-        rep.text(w, note=True)
-    rows = []
-    for kg in (result.partial, result.stuck):
-        r = kg.rate
-        rows.append([kg.kind, r.count, r.exposure, r.rate, f"[{r.ci[0]:.4g}, {r.ci[1]:.4g}]"])
-    rep.table(["kind", "new defects", "MP·years", "rate (/MP/yr)", "95 % interval (Garwood)"], rows)
-    p = result.paper
-    rep.table(["paper (eq. 16–20)", "n₁", "n₂", "n_match", "γ", "λ_ps (eq. 17)", "λ_s (eq. 18)", "a_ps (eq. 19)"],
-              [["first vs last epoch", p.n1, p.n2, p.n_match, p.gamma, p.lambda_ps, p.lambda_s, p.a_ps]])
-    if result.partial.chapman:
-        c = result.partial.chapman
-        rep.text(f"Capture–recapture (Chapman), partially stuck: N̂ = {c.n_hat:.1f} defects at the last epoch "
-                 f"(95 % [{c.ci[0]:.1f}, {c.ci[1]:.1f}]), detection efficiency n₂/N̂ = {c.efficiency:.2f}.")
-    for kg in (result.partial, result.stuck):
-        if kg.trend:
-            tr = kg.trend
-            rep.text(f"{kg.kind}: test of linear growth (constant rate): LR = {tr.lr_statistic:.2f}, "
-                     f"p = {tr.p_value:.3g} → {'consistent' if tr.linear else 'rejected'}; dispersion "
-                     f"{tr.dispersion:.2f}.")
-    rep.figure(counts_figure(result), "growth_counts", "Cumulative defects against capture date with exact "
-               "95 % intervals; lines: constant-rate fit and the rate's interval.")
-    return rep

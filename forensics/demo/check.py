@@ -3,9 +3,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from forensics.check.core import Evidence, base_model, check_report, load_measurements, make_effect, run_check
 from forensics._shared.progress import Progress
+from forensics.check import Evidence, base_model, load_measurements, run_check
+from forensics.report.check import check_report
 from forensics.report.html import Report
+from forensics.sensor.model import make_effect
 from . import DemoSection
 
 TITLE = "Model against measurement: find the missing effect, add it, watch the error fall"
@@ -16,9 +18,9 @@ def run(workdir: Path, seed: int, progress: Progress) -> DemoSection:
     from forensics.fixtures.hidden import HIDDEN as STRENGTHS
     from forensics.fixtures.hidden import make_hidden
 
-    data = make_hidden(HIDDEN, workdir / "lab", seed=seed, progress=progress)
+    data = make_hidden(HIDDEN, workdir / "lab", rng=seed, progress=progress)
     meas = load_measurements(data.out, progress=progress)
-    evidence = Evidence(meas, seed=seed)
+    evidence = Evidence(meas, rng=seed)
     before = run_check(evidence, base_model())
     named = before.flagged[0] if before.flagged else None
     rep = Report(TITLE)

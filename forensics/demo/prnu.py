@@ -17,12 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
+from forensics._shared.progress import Progress
+from forensics._shared.rng import RngLike, as_generator, spawn
+from forensics.prnu.samedevice import ImageSet, SameDeviceResult, same_device
+from forensics.report.prnu import prnu_demo_report
 from forensics.sensor.model import SensorModel, make_effect
 from forensics.sensor.presets import preset
-from forensics._shared.progress import Progress
-from forensics.report.html import Report
-from forensics.prnu.samedevice import ImageSet, SameDeviceResult, add_to_report, same_device
 from forensics.sensor.scenes import pink_texture, scene
+
 from . import DemoSection
 
 TITLE = "Same device? PRNU fingerprints, EER with a bootstrap interval, fingerprint ageing"
@@ -60,12 +62,13 @@ def _scene(shape: tuple[int, int], rng: np.random.Generator, kind: str) -> np.nd
     return scene(shape, rng, 1, kind)
 
 
-def simulated_set(device, n: int, time: float, seed: int, name: str, *, kind: str = "smooth") -> ImageSet:
+def simulated_set(device, n: int, time: float, rng: RngLike, name: str, *, kind: str = "smooth") -> ImageSet:
     """``n`` images of a realised device at ``time`` (decimal years), rendered on demand.
 
     Image ``i`` is the same whenever it is loaded (its scene and noise come from the
-    ``i``-th child of ``SeedSequence(seed)``), so the set behaves like a folder of
-    files without being held in memory.
+    ``i``-th child of ``rng``, :func:`forensics._shared.rng.spawn`: of ``SeedSequence(seed)``
+    for an integer seed), so the set behaves like a folder of files without being held
+    in memory.
 
     Parameters
     ----------
@@ -73,7 +76,8 @@ def simulated_set(device, n: int, time: float, seed: int, name: str, *, kind: st
     n : int
     time : float
         Capture time; defects with an earlier onset are present.
-    seed : int
+    rng : numpy.random.Generator or int
+        Spawns one child generator per image.
     name : str
     kind : {'smooth', 'texture', 'photo'}
         Scenes: 1/f³ pink shading, :func:`forensics.sensor.scenes.scene` textures (1/f^1.8,
@@ -81,13 +85,13 @@ def simulated_set(device, n: int, time: float, seed: int, name: str, *, kind: st
     """
     if kind not in SCENE_KINDS:
         raise ValueError(f"kind={kind!r}: choose one of {', '.join(SCENE_KINDS)}")
-    children = np.random.SeedSequence(seed).spawn(n)
+    children = spawn(rng, n)
     shape = device.model.shape
 
     def render(i: int) -> np.ndarray:
-        rng = np.random.default_rng(children[i])
-        light = _scene(shape, rng, kind) * np.float32(device.model.full_scale)
-        return device.expose(light, device.context(time), rng)
+        child = np.random.default_rng(children[i].bit_generator.seed_seq)  # a fresh stream at every load
+        light = _scene(shape, child, kind) * np.float32(device.model.full_scale)
+        return device.expose(light, device.context(time), child)
 
     return ImageSet.from_function(n, render, name)
 
@@ -102,9 +106,13 @@ def _line(label: str, r: SameDeviceResult) -> str:
     return text
 
 
-def run(workdir: Path, seed: int, progress: Progress) -> DemoSection:
-    """Run the three comparisons (about 15 s on 2 cores) and build the report section."""
-    rng = np.random.default_rng(seed)
+def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
+    """Run the three comparisons (about 15 s on 2 cores) and build the report section.
+
+    ``rng`` (Generator or int seed) realises the devices, seeds the image sets and draws every selection
+    and bootstrap.
+    """
+    rng = as_generator(rng)
     counts = dict(fingerprint_images=30, score_images=80, region="full", ageing_fingerprints=8, ageing_images=12,
                   n_boot=1000, progress=progress)
     n = 30 + 80
@@ -126,29 +134,8 @@ def run(workdir: Path, seed: int, progress: Progress) -> DemoSection:
 
     n_h = len(old_h.catalogue.effective(years))
     n_a = len(old_a.catalogue.effective(years))
-    rep = Report(TITLE)
-    rep.text(f"Simulated {SIZE[1]}×{SIZE[0]} 8-bit cameras: PRNU σ_k = 1 %, read noise 1 DN, shot noise "
-             "(σ ≈ 2.5 DN at mid-grey), smooth scenes. Each comparison follows the paper's protocol with smaller "
-             f"counts: per set {counts['fingerprint_images']} random images for the fingerprint and "
-             f"{counts['score_images']} others scored by NCC against both fingerprints; the EER of matching against "
-             "non-matching scores with a 95 % bootstrap interval (1,000 replicates); then 8 median-residual "
-             "fingerprints of 12 images per set for the ageing table.")
-    rep.heading("1. Two devices of one model")
-    add_to_report(two, rep, prefix="two_")
-    rep.heading(f"2. One device, new and after {years:g} years as sensor H")
-    rep.text(f"Sensor H (8× the iris sensor's rate of partially stuck pixels at 100 DN, plus stuck pixels) has "
-             f"{n_h} defective pixels after {years:g} years. A partially stuck pixel adds a light-independent offset "
-             "d; the 3×3 median residual keeps it as a spike and the fingerprint estimate Σ W·I / Σ I² as a spike "
-             "of about d/I, tens of times the PRNU. Fingerprints of one epoch share their spikes; the old ones have "
-             "spikes the new ones lack, so the inter-set NCC falls below both intra-set values (table 2), and the "
-             "consistency inter/√(intra·intra), 1 for an unchanged pattern, falls below 1.")
-    add_to_report(aged_h, rep, prefix="aged_h_")
-    rep.heading(f"3. One device, new and after {years:g} years as sensor A (the paper's real sensor)")
-    rep.text(f"With the growth rate and 3 DN amplitude measured on the iris sensor, {n_a} defective pixel(s) "
-             f"appear in {years:g} years on this sensor: far too few and too faint to change the fingerprint. "
-             "Defects of this kind cannot by themselves explain a drop of the inter-set NCC like the paper's "
-             "table 2 (0.0911 against 0.1175 and 0.1207).")
-    add_to_report(aged_a, rep, prefix="aged_a_")
+    rep = prnu_demo_report(TITLE, two, aged_h, aged_a, size=SIZE, years=years, defects=(n_h, n_a),
+                           fingerprint_images=counts["fingerprint_images"], score_images=counts["score_images"])
     summary = [
         "same device: " + _line("two devices", two),
         "same device: " + _line(f"sensor H new vs {years:g} y", aged_h),

@@ -51,6 +51,8 @@ __all__ = [
     "score_pair",
     "score_query",
     "score_matrix",
+    "SetMatch",
+    "match_set",
 ]
 
 #: Residual noise level of queries in the reference design (8-bit scale).
@@ -606,3 +608,73 @@ def score_matrix(
     if details:
         return scores, [[columns[j][i] for j in range(len(columns))] for i in range(len(fingerprints))]
     return scores
+
+
+@dataclass
+class SetMatch:
+    """Every image of a set scored against one fingerprint, with a decision at a threshold (:func:`match_set`).
+
+    ``scores`` holds one row per image: ``file``, ``score`` (the metric's value), ``ncc``, ``rotation``
+    (quarter turns), ``pce`` (:meth:`PceResult.to_dict` or None) and ``match`` (None without a threshold).
+    """
+
+    fingerprint: str
+    set: str
+    region: str
+    metric: str
+    threshold: float | None
+    shift_search: str | None
+    scores: list[dict[str, Any]]
+
+    @property
+    def n_match(self) -> int | None:
+        """Images reaching the threshold (None without one)."""
+        return sum(1 for r in self.scores if r["match"]) if self.threshold is not None else None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"fingerprint": self.fingerprint, "set": self.set, "region": self.region, "metric": self.metric,
+                "threshold": self.threshold, "shift_search": self.shift_search, "n_images": len(self.scores),
+                "n_match": self.n_match, "scores": self.scores}
+
+
+def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, threshold: float | None = None,
+              shift_range: int | None = 0, sigma: float = QUERY_SIGMA, progress: Progress = no_progress,
+              name: str | None = None) -> SetMatch:
+    """Score each frame of ``dataset`` against ``fingerprint`` and decide at ``threshold``.
+
+    Parameters
+    ----------
+    fingerprint : Fingerprint
+    dataset : forensics.io.dataset.Dataset
+        Its frames are scored (streamed) with :func:`score_matrix`.
+    metric : {'pce', 'ncc'}
+    threshold : float, optional
+        Default :data:`PCE_THRESHOLD` for PCE, none (no decisions) for NCC.
+    shift_range : int or None
+        PCE only: 0 (zero shift), R (up to ±R pixels) or None (every circular shift).
+    sigma : float
+        Query residual noise level (8-bit scale).
+    name : str, optional
+        How the fingerprint is named in the result (e.g. its file).
+
+    Raises
+    ------
+    UsageError
+        A shift search with NCC.
+    """
+    _check_metric(metric)
+    if metric == "ncc" and shift_range != 0:
+        raise UsageError("--shift-range applies to PCE only; drop it or use --metric pce")
+    if threshold is None and metric == "pce":
+        threshold = PCE_THRESHOLD
+    scores, details = score_matrix([fingerprint], dataset.frames, metric, sigma=sigma, shift_range=shift_range,
+                                   progress=progress, total=len(dataset), details=True)
+    rows = []
+    for frame, value, d in zip(dataset.frames, scores[0], details[0]):
+        decision = None if threshold is None else bool(value >= threshold)
+        rows.append({"file": frame.file, "score": float(value), "ncc": d.ncc, "rotation": d.rotation,
+                     "pce": d.pce.to_dict() if d.pce is not None else None, "match": decision})
+    search = ("zero shift" if shift_range == 0 else
+              "all circular shifts" if shift_range is None else f"shifts up to ±{shift_range}")
+    return SetMatch(name or "fingerprint", str(dataset.root), fingerprint.region, metric, threshold,
+                    search if metric == "pce" else None, rows)

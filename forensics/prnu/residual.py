@@ -63,7 +63,7 @@ import scipy.fft
 from scipy import ndimage
 
 from forensics._shared.errors import InputError
-from forensics._shared.arrays import GREY_WEIGHTS, full_scale, grey_luma
+from forensics._shared.arrays import full_scale, grey_luma
 
 __all__ = [
     "LEVELS",

@@ -21,24 +21,12 @@ The test, as the paper runs it (Höller & Uhl's sensor-identification methodolog
    in between is reported as what it is: the sets are partly distinguishable —
    one device whose fingerprint changed (ageing, a processing change) or two
    devices with weak fingerprints — which this test alone cannot decide.
-5. **Fingerprint ageing (table 2).**  Up to 16 fingerprints per set, each from 50
-   disjoint random images, from the 3×3 **median** residual ``y − median(y)``
-   (spiky defects survive it; the wavelet denoiser would partly smooth them away).
-   The mean NCC over the ``n² − n`` ordered intra-set pairs of each set and the
-   ``n²`` inter-set pairs, with bootstrap intervals over *fingerprints* (pairs
-   sharing a fingerprint are not independent, so pairs are not resampled), and
-   the consistency ``inter / √(intra_A · intra_B)``: 1 when both sets carry the
-   same pattern, whatever their noise, below 1 when the pattern changed (see
-   :class:`AgeingTable`).
-
-Why ageing lowers the inter-set NCC (and why the median residual shows it): a
-partially stuck pixel adds a light-independent offset ``d``; in a median residual it
-is a spike of height ≈ ``d``, and the ML estimate ``Σ W·I / Σ I²`` turns it into a
-spike ``≈ d / Ī`` in ``K`` — for ``d`` of tens of DN, tens of times the PRNU's
-``σ_k``.  Fingerprints of one epoch share every spike present then; an old set has
-spikes the young one lacks.  The shared spikes add to the numerator of the
-inter-set NCC only what both sets have, while the new ones add energy to the old
-fingerprints' norm: inter-set NCC falls below both intra-set values.
+5. **Fingerprint ageing (table 2).**  Up to 16 median-residual fingerprints per set,
+   each from 50 disjoint random images; intra- and inter-set mean NCC and their
+   consistency, with bootstrap intervals over fingerprints
+   (:mod:`forensics.prnu.ageing`, which also explains why ageing lowers the
+   inter-set NCC).  The figures and tables of a result are drawn by
+   :func:`forensics.report.prnu.add_same_device`.
 
 Streaming: images are decoded one at a time.  An image is decoded once for the
 EER part (it is either a fingerprint image or a scoring image) and once more if it
@@ -60,27 +48,25 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from forensics._shared.rng import as_generator
 from forensics._shared.errors import InputError, UsageError
-from forensics.prnu.fingerprint import (
-    Fingerprint,
-    FingerprintBuilder,
-    Region,
-    intensity,
-    parse_region,
-    saturation_mask,
-)
-from forensics.prnu.match import QUERY_SIGMA, prepare_query, score_pair
 from forensics._shared.progress import Progress, no_progress
-from forensics._shared.arrays import grey_luma
-from forensics.prnu.residual import median_residual, zero_mean_cfa
-from forensics.stats.scores import auc, bootstrap_eer, eer, eer_convex_hull
+from forensics._shared.rng import RngLike, as_generator
+from forensics.prnu.ageing import (
+    AGEING_FINGERPRINTS,
+    AGEING_IMAGES,
+    AGEING_RESIDUALS,
+    MIN_AGEING_FINGERPRINTS,
+    AgeingTable,
+    ageing_table,
+    build_ageing_fingerprints,
+)
+from forensics.prnu.fingerprint import Fingerprint, FingerprintBuilder, Region, parse_region
+from forensics.prnu.match import QUERY_SIGMA, prepare_query, score_pair
+from forensics.stats.scores import DetCurve, auc, bootstrap_eer, det_curve, eer, eer_convex_hull
 
 __all__ = [
     "FINGERPRINT_IMAGES",
     "SCORE_IMAGES",
-    "AGEING_FINGERPRINTS",
-    "AGEING_IMAGES",
     "DIFFERENT_BELOW",
     "ImageSet",
     "SetPlan",
@@ -88,29 +74,18 @@ __all__ = [
     "expected_eer_ci_width",
     "EerVerdict",
     "eer_verdict",
-    "MedianFingerprintBuilder",
-    "PairStatistic",
-    "AgeingTable",
-    "ageing_table",
     "SetSummary",
     "SameDeviceResult",
     "same_device",
-    "add_to_report",
 ]
 
 #: The paper's counts: 50 images per fingerprint, 800 scoring images per set.
 FINGERPRINT_IMAGES = 50
 SCORE_IMAGES = 800
-#: Table 2: 16 fingerprints of 50 disjoint images per set.
-AGEING_FINGERPRINTS = 16
-AGEING_IMAGES = 50
-#: A small set still gets at least this many ageing fingerprints (with fewer images each).
-MIN_AGEING_FINGERPRINTS = 4
 #: An EER interval entirely below this says "different devices".
 DIFFERENT_BELOW = 0.10
 #: An EER interval wider than this is flagged as weak evidence.
 WIDE_INTERVAL = 0.20
-AGEING_RESIDUALS = ("median", "wavelet")
 
 
 def _pct(x: float) -> str:
@@ -319,7 +294,7 @@ class SetPlan:
 
 def plan_set(
     n_available: int,
-    rng: np.random.Generator,
+    rng: RngLike,
     *,
     name: str = "set",
     fingerprint_images: int = FINGERPRINT_IMAGES,
@@ -341,7 +316,7 @@ def plan_set(
     ----------
     n_available : int
         Number of images in the set.
-    rng : numpy.random.Generator
+    rng : numpy.random.Generator or int
         Source of the random draws.
     name : str
         For the warnings.
@@ -469,7 +444,7 @@ class EerVerdict:
 def eer_verdict(
     genuine: Any,
     impostor: Any,
-    rng: np.random.Generator,
+    rng: RngLike,
     *,
     n_boot: int = 1000,
     level: float = 0.95,
@@ -481,7 +456,7 @@ def eer_verdict(
     ----------
     genuine, impostor : array_like
         Matching (own fingerprint) and non-matching (other set's fingerprint) scores.
-    rng : numpy.random.Generator
+    rng : numpy.random.Generator or int
         For the bootstrap.
     n_boot, level : int, float
         Bootstrap replicates and interval coverage.
@@ -528,306 +503,6 @@ def eer_verdict(
         eer=float(point.eer), ci=(float(lo), float(hi)), level=float(level), n_boot=int(n_boot),
         threshold=float(point.threshold), eer_convex_hull=float(eer_convex_hull(g, i).eer), auc=float(auc(g, i)),
         n_genuine=int(g.size), n_impostor=int(i.size), expected_width=width, decision=decision, verdict=verdict,
-    )
-
-
-# ----------------------------------------------------------------------------- median-residual fingerprints
-
-
-class MedianFingerprintBuilder(FingerprintBuilder):
-    """``K = Σ W·I / Σ I²`` with the median residual ``W = y − median_{q×q}(y)``, streamed.
-
-    The paper's estimator for the ageing table (it keeps spiky defects).  Intensity
-    ``I``, the saturation rule and the accumulation are those of
-    :class:`forensics.prnu.fingerprint.FingerprintBuilder`; only the residual differs, and
-    the result is made zero-mean on each CFA sub-lattice without the DFT Wiener step
-    (not part of the median variant; it would only rescale a flat spectrum).
-
-    Parameters
-    ----------
-    region : str or Region
-    size : int
-        Median window (3).
-    **options
-        ``white_level``, ``black_level``, ``saturation_level``, ``saturation_dilate``,
-        ``rolloff`` as :class:`forensics.prnu.fingerprint.FingerprintBuilder`.
-    """
-
-    def __init__(self, region: str | Region = "full", size: int = 3, **options: Any) -> None:
-        super().__init__(region, sigma=0.0, **options)
-        self.size = int(size)
-
-    def _residual_and_intensity(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        assert self.frame_shape is not None and self.white_level is not None
-        shape = self.region.shape(self.frame_shape)
-        w_all, i_all = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
-        level = self.white_level if self.saturation_level is None else self.saturation_level
-        for src, dst in zip(self.region.pieces(self.frame_shape), self.region.mosaic_slices(self.frame_shape)):
-            piece = image[src]
-            grey = grey_luma(piece)
-            sat = saturation_mask(piece, level, self.saturation_dilate)
-            w_all[dst] = median_residual(grey, self.size)
-            i_all[dst] = intensity(grey, self.white_level, self.black_level, sat, self.rolloff)
-        return w_all, i_all
-
-    def _postprocess(self, raw: np.ndarray) -> np.ndarray:
-        assert self.frame_shape is not None
-        for dst in self.region.mosaic_slices(self.frame_shape):
-            raw[dst] = zero_mean_cfa(np.ascontiguousarray(raw[dst]))
-        return raw
-
-    def _estimator(self) -> dict[str, Any]:
-        return {"estimator": f"K = sum(W*I) / sum(I^2), W = y - median{self.size}x{self.size}(y), "
-                             "then zero-mean per CFA sub-lattice"}
-
-
-# ----------------------------------------------------------------------------- ageing table
-
-
-@dataclass(frozen=True)
-class PairStatistic:
-    """A statistic of fingerprint pairs with a bootstrap interval over fingerprints.
-
-    ``ci`` is None when there are too few fingerprints for a bootstrap (fewer than 3
-    in a set) or the statistic is undefined.
-    """
-
-    label: str
-    mean: float
-    ci: tuple[float, float] | None
-    n_pairs: int
-    sd: float
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready form."""
-        return {"label": self.label, "mean": _finite(self.mean),
-                "ci": [_finite(self.ci[0]), _finite(self.ci[1])] if self.ci is not None else None,
-                "n_pairs": self.n_pairs, "sd": _finite(self.sd)}
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
-@dataclass(frozen=True)
-class AgeingTable:
-    """The paper's table 2: mean NCC between fingerprints within and across the two sets.
-
-    Attributes
-    ----------
-    residual : str
-        'median' (the paper) or 'wavelet'.
-    names : (str, str)
-        The sets.
-    n_fingerprints : (int, int)
-    images_per_fingerprint : (int, int)
-    intra_a, intra_b, inter : PairStatistic
-        Mean NCC over the ``n² − n`` ordered intra-set pairs of each set and the
-        ``n_a·n_b`` inter-set pairs (the paper's three numbers).
-    consistency : PairStatistic
-        ``inter / √(intra_a · intra_b)``.  If both sets carry one fixed pattern
-        ``k`` and each fingerprint is ``k`` plus independent estimation noise, the
-        expected intra-set NCC is ``P/(P + N_set)`` and the inter-set NCC
-        ``P/√((P + N_a)(P + N_b))`` — the geometric mean of the two intra-set
-        values, whatever the noise of each set.  So the ratio is 1 when the
-        pattern did not change (even if one set's images are noisier, which
-        alone would put the inter-set mean below the larger intra-set value),
-        and below 1 when it did: it is the correlation of the two sets'
-        underlying patterns (Spearman's correction for attenuation).  New defects
-        ``D`` give ``√((P + D_a)/(P + D_b))`` for the older set b.
-    inter_below_intra : bool
-        The paper's reading: the inter-set mean is below both intra-set means.
-    matrix : ndarray
-        NCC of every pair of fingerprints, A's first (for plots).
-    level, n_boot : float, int
-    verdict : str
-    """
-
-    residual: str
-    names: tuple[str, str]
-    n_fingerprints: tuple[int, int]
-    images_per_fingerprint: tuple[int, int]
-    intra_a: PairStatistic
-    intra_b: PairStatistic
-    inter: PairStatistic
-    consistency: PairStatistic
-    inter_below_intra: bool
-    matrix: np.ndarray
-    level: float
-    n_boot: int
-    verdict: str
-
-    @property
-    def statistics(self) -> tuple[PairStatistic, PairStatistic, PairStatistic, PairStatistic]:
-        """intra_a, intra_b, inter, consistency."""
-        return self.intra_a, self.intra_b, self.inter, self.consistency
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready form (the matrix included)."""
-        return {
-            "residual": self.residual,
-            "names": list(self.names),
-            "n_fingerprints": list(self.n_fingerprints),
-            "images_per_fingerprint": list(self.images_per_fingerprint),
-            "intra_a": self.intra_a.to_dict(),
-            "intra_b": self.intra_b.to_dict(),
-            "inter": self.inter.to_dict(),
-            "consistency": self.consistency.to_dict(),
-            "inter_below_intra": self.inter_below_intra,
-            "level": self.level,
-            "n_boot": self.n_boot,
-            "verdict": self.verdict,
-            "matrix": self.matrix.tolist(),
-        }
-
-
-def _ncc_matrix(rows: np.ndarray) -> np.ndarray:
-    """NCC of every pair of rows (each row one flattened fingerprint), float64 sums in column chunks."""
-    n, p = rows.shape
-    means = rows.mean(axis=1, dtype=np.float64)
-    gram = np.zeros((n, n))
-    chunk = max(1, (1 << 23) // max(n, 1))
-    for s in range(0, p, chunk):
-        block = rows[:, s:s + chunk].astype(np.float64)
-        block -= means[:, None]
-        gram += block @ block.T
-    norm = np.sqrt(np.maximum(np.diag(gram), 0.0))
-    den = np.outer(norm, norm)
-    out = np.zeros_like(gram)
-    np.divide(gram, den, out=out, where=den > 0)
-    np.fill_diagonal(out, np.where(norm > 0, 1.0, 0.0))
-    return np.clip(out, -1.0, 1.0)
-
-
-def _pair_means(m: np.ndarray, ia: np.ndarray, ib: np.ndarray, na: int) -> np.ndarray:
-    """Intra-A, intra-B, inter means and consistency for rows of resampled indices.
-
-    ``ia`` (R, na) and ``ib`` (R, nb) hold indices into A's and B's blocks of ``m``;
-    pairs of a fingerprint with a copy of itself (same original index) are left
-    out of the intra means.  Returns an (R, 4) array (NaN where undefined).
-    """
-    def intra(idx: np.ndarray, off: int) -> np.ndarray:
-        g = m[(idx + off)[:, :, None], (idx + off)[:, None, :]]
-        valid = idx[:, :, None] != idx[:, None, :]
-        count = valid.sum(axis=(1, 2))
-        total = np.where(valid, g, 0.0).sum(axis=(1, 2))
-        out = np.full(idx.shape[0], np.nan)
-        np.divide(total, count, out=out, where=count > 0)
-        return out
-
-    a, b = intra(ia, 0), intra(ib, na)
-    inter = m[ia[:, :, None], (ib + na)[:, None, :]].mean(axis=(1, 2))
-    prod = a * b
-    cons = np.full(inter.shape, np.nan)
-    ok = np.isfinite(prod) & (a > 0) & (b > 0)
-    cons[ok] = inter[ok] / np.sqrt(prod[ok])
-    return np.column_stack([a, b, inter, cons])
-
-
-def ageing_table(
-    fingerprints_a: Sequence[np.ndarray | Fingerprint],
-    fingerprints_b: Sequence[np.ndarray | Fingerprint],
-    rng: np.random.Generator,
-    *,
-    names: tuple[str, str] = ("A", "B"),
-    residual: str = "median",
-    images_per_fingerprint: tuple[int, int] = (0, 0),
-    n_boot: int = 1000,
-    level: float = 0.95,
-) -> AgeingTable:
-    """Table 2 from two lists of fingerprints: intra- and inter-set mean NCC with intervals.
-
-    Parameters
-    ----------
-    fingerprints_a, fingerprints_b : sequences of arrays or Fingerprint
-        All of one shape; at least 2 per set (3 for intervals).
-    rng : numpy.random.Generator
-        For the bootstrap over fingerprints.
-    names : (str, str)
-    residual : str
-        Recorded: which residual the fingerprints were made from.
-    images_per_fingerprint : (int, int)
-        Recorded.
-    n_boot, level : int, float
-        Bootstrap replicates and coverage.
-
-    Notes
-    -----
-    Pairs that share a fingerprint are correlated, so the intervals resample
-    fingerprints (with replacement, each set separately) and recompute every
-    statistic over the resampled pairs, leaving out pairs of a fingerprint with a
-    copy of itself.  The consistency ratio is bootstrapped jointly with the means.
-    """
-    rng = as_generator(rng)
-    arrays = [np.asarray(f.K if isinstance(f, Fingerprint) else f, np.float32)
-              for f in (*fingerprints_a, *fingerprints_b)]
-    na, nb = len(fingerprints_a), len(fingerprints_b)
-    if na < 2 or nb < 2:
-        raise InputError(f"the ageing table needs at least 2 fingerprints per set (got {na} and {nb})")
-    shape = arrays[0].shape
-    if any(a.shape != shape for a in arrays):
-        raise InputError("ageing table: all fingerprints must have one shape (same region and frame size)")
-    rows = np.empty((na + nb, int(np.prod(shape))), np.float32)
-    for k, a in enumerate(arrays):
-        rows[k] = a.ravel()
-    del arrays
-    m = _ncc_matrix(rows)
-    del rows
-    point = _pair_means(m, np.arange(na)[None], np.arange(nb)[None], na)[0]
-    can_boot = na >= 3 and nb >= 3
-    reps = None
-    if can_boot:
-        parts = []
-        chunk = max(1, min(int(n_boot), (1 << 22) // (na * na + nb * nb + na * nb)))
-        for s in range(0, int(n_boot), chunk):
-            b = min(chunk, int(n_boot) - s)
-            parts.append(_pair_means(m, rng.integers(0, na, size=(b, na)), rng.integers(0, nb, size=(b, nb)), na))
-        reps = np.concatenate(parts)
-    tail = 100 * (1 - level) / 2
-
-    def stat(label: str, k: int, n_pairs: int) -> PairStatistic:
-        value = float(point[k])
-        if reps is None or not math.isfinite(value):
-            return PairStatistic(label, value, None, n_pairs, float("nan"))
-        col = reps[:, k][np.isfinite(reps[:, k])]
-        if col.size < 0.9 * reps.shape[0]:  # undefined in too many replicates (intra NCC near 0)
-            return PairStatistic(label, value, None, n_pairs, float("nan"))
-        lo, hi = np.percentile(col, [tail, 100 - tail])
-        return PairStatistic(label, value, (float(lo), float(hi)), n_pairs, float(np.std(col, ddof=1)))
-
-    a, b = names
-    intra_a = stat(f"{a}–{a} (intra-set)", 0, na * na - na)
-    intra_b = stat(f"{b}–{b} (intra-set)", 1, nb * nb - nb)
-    inter = stat(f"{a}–{b} (inter-set)", 2, na * nb)
-    consistency = stat("consistency inter/√(intra·intra)", 3, na * nb)
-    below = bool(inter.mean < min(intra_a.mean, intra_b.mean))
-    means = (f"inter-set mean NCC {inter.mean:.4f}, intra-set {intra_a.mean:.4f} ({a}) and {intra_b.mean:.4f} ({b})")
-    c = consistency
-    if not math.isfinite(c.mean):
-        verdict = f"{means}; an intra-set mean is not positive, so the sets carry no common pattern to compare"
-    elif c.ci is None:
-        verdict = (f"{means}; consistency {c.mean:.3f}; too few fingerprints for an interval (at least 3 per set "
-                   "are needed)")
-    elif c.ci[0] <= 0 <= c.ci[1]:
-        verdict = (f"{means}; consistency {c.mean:.3f} [{c.ci[0]:.3f}, {c.ci[1]:.3f}] contains 0: the two sets share "
-                   "no detectable pattern, as two different devices do (one sensor keeps its PRNU as it ages; only "
-                   "defects so strong that they swamp it could do this)")
-    elif c.ci[1] < 1:
-        verdict = (f"{means}; consistency {c.mean:.3f} [{c.ci[0]:.3f}, {c.ci[1]:.3f}] is below 1: the fingerprints "
-                   "of the two sets agree less than their own noise explains, so the pattern changed between the "
-                   "sets — ageing defects if they come from one device (the paper's table 2), different devices "
-                   "if the EER says so")
-    elif c.ci[0] > 1:
-        verdict = (f"{means}; consistency {c.mean:.3f} [{c.ci[0]:.3f}, {c.ci[1]:.3f}] is above 1: no sign of a "
-                   "change (check for content shared across the sets)")
-    else:
-        verdict = (f"{means}; consistency {c.mean:.3f} [{c.ci[0]:.3f}, {c.ci[1]:.3f}] contains 1: no change of "
-                   "the fingerprint between the sets is detected")
-    return AgeingTable(
-        residual=residual, names=(a, b), n_fingerprints=(na, nb),
-        images_per_fingerprint=(int(images_per_fingerprint[0]), int(images_per_fingerprint[1])),
-        intra_a=intra_a, intra_b=intra_b, inter=inter, consistency=consistency, inter_below_intra=below,
-        matrix=m, level=float(level), n_boot=int(n_boot) if can_boot else 0, verdict=verdict,
     )
 
 
@@ -898,6 +573,15 @@ class SameDeviceResult:
         """The verdict in words."""
         return self.eer.verdict
 
+    @property
+    def median_scores(self) -> tuple[float, float]:
+        """Median matching and median non-matching NCC."""
+        return float(np.median(self.genuine)), float(np.median(self.impostor))
+
+    def det_curve(self) -> DetCurve:
+        """DET curve of the matching against the non-matching scores."""
+        return det_curve(self.genuine, self.impostor)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form: ``eer``, ``eer_ci``, ``verdict`` at the top, details below."""
         return {
@@ -929,30 +613,10 @@ def _build_fingerprint(images: ImageSet, indices: Sequence[int], region: Region,
     return builder.result()
 
 
-def _ageing_fingerprints(images: ImageSet, groups: Sequence[Sequence[int]], region: Region, residual: str,
-                         sigma: float, median_size: int, progress: Progress, desc: str,
-                         options: dict[str, Any]) -> list[np.ndarray]:
-    """One fingerprint per group, built group after group (one accumulator in memory at a time)."""
-    out = []
-    median_options = {k: v for k, v in options.items() if k != "workers"}
-    total = sum(len(g) for g in groups)
-    it = iter(progress(((gi, i) for gi, g in enumerate(groups) for i in g), total=total, desc=desc))
-    for gi, group in enumerate(groups):
-        builder: Any = (MedianFingerprintBuilder(region, median_size, **median_options) if residual == "median"
-                        else FingerprintBuilder(region, sigma, **options))
-        for _ in group:
-            _, i = next(it)
-            builder.add(images.load(i), source=images.sources[i])
-        out.append(builder.result().K)
-    for _ in it:  # let a progress bar finish
-        pass
-    return out
-
-
 def same_device(
     set_a: Any,
     set_b: Any,
-    rng: np.random.Generator,
+    rng: RngLike,
     *,
     fingerprint_images: int = FINGERPRINT_IMAGES,
     score_images: int = SCORE_IMAGES,
@@ -979,7 +643,7 @@ def same_device(
         Anything :meth:`ImageSet.of` accepts: dataset folders, Datasets, sequences of
         arrays/paths/frames/callables, or ImageSets.  All images of both sets must
         have one frame size (rotate portrait frames first).
-    rng : numpy.random.Generator
+    rng : numpy.random.Generator or int
         Every random draw (image selection, bootstraps).
     fingerprint_images, score_images : int
         Per set (50 and 800 in the paper); reduced for small sets, with a warning.
@@ -1019,19 +683,9 @@ def same_device(
         Bad counts or options.
     """
     rng = as_generator(rng)
-    if ageing_residual not in AGEING_RESIDUALS:
-        raise UsageError(f"ageing_residual={ageing_residual!r}: choose one of {', '.join(AGEING_RESIDUALS)}")
-    allowed = {"white_level", "black_level", "saturation_level", "saturation_dilate", "rolloff", "workers"}
-    unknown = set(options) - allowed
-    if unknown:
-        raise UsageError(f"unknown option(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(allowed))}")
+    _check_options(ageing_residual, options)
     region = parse_region(region)
-    name_a, name_b = names if names is not None else (None, None)
-    images_a = ImageSet.of(set_a, name_a or _default_name(set_a, "A"))
-    images_b = ImageSet.of(set_b, name_b or _default_name(set_b, "B"))
-    if images_a.name == images_b.name:
-        images_a = ImageSet.of(images_a, f"{images_a.name} (A)")
-        images_b = ImageSet.of(images_b, f"{images_b.name} (B)")
+    images_a, images_b = _open_sets(set_a, set_b, names)
     plans = [plan_set(len(s), rng, name=s.name, fingerprint_images=fingerprint_images, score_images=score_images,
                       ageing_fingerprints=ageing_fingerprints if ageing else 0, ageing_images=ageing_images)
              for s in (images_a, images_b)]
@@ -1045,32 +699,13 @@ def same_device(
         raise InputError(f"{images_a.name} has {shape_a[0]}×{shape_a[1]} frames, {images_b.name} "
                          f"{shape_b[0]}×{shape_b[1]}; both sets must come at one frame size and orientation")
     # 2. scores: each scoring image's residual once, against both fingerprints
-    own_other = []
-    for k, (s, p) in enumerate(zip((images_a, images_b), plans)):
-        own = np.empty(len(p.score))
-        other = np.empty(len(p.score))
-        for j, i in enumerate(progress(p.score, total=len(p.score), desc=f"scoring {s.name}")):
-            image = s.load(i)
-            if tuple(image.shape[:2]) != tuple(shape_a):
-                raise InputError(f"{s.sources[i]}: frame is {image.shape[0]}×{image.shape[1]}, the others are "
-                                 f"{shape_a[0]}×{shape_a[1]}")
-            query = prepare_query(image, region, sigma=query_sigma, source=s.sources[i], **options)
-            del image
-            own[j] = score_pair(fps[k], query, "ncc").value
-            other[j] = score_pair(fps[1 - k], query, "ncc").value
-        own_other.append((own, other))
+    own_other = [_score_set(s, p.score, fps[k], fps[1 - k], region, query_sigma, progress, options)
+                 for k, (s, p) in enumerate(zip((images_a, images_b), plans))]
     (a_own, a_other), (b_own, b_other) = own_other
     verdict = eer_verdict(np.concatenate([a_own, b_own]), np.concatenate([a_other, b_other]), rng,
                           n_boot=n_boot, level=level, different_below=different_below)
-    n_score = (len(plans[0].score), len(plans[1].score))
-    if n_score[0] < score_images or n_score[1] < score_images:
-        full = expected_eer_ci_width(2 * score_images, 2 * score_images, level)
-        warnings.append(
-            f"statistical power: {verdict.n_genuine} matching and {verdict.n_impostor} non-matching scores; when the "
-            f"sets cannot be told apart the {100 * level:g} % EER interval is expected to be about "
-            f"{100 * verdict.expected_width:.0f} points wide (±{50 * verdict.expected_width:.0f} around 50 %), "
-            f"against {100 * full:.1f} points with {score_images} scoring images per set"
-        )
+    if len(plans[0].score) < score_images or len(plans[1].score) < score_images:
+        warnings.append(_power_warning(verdict, score_images, level))
     summaries = [
         SetSummary(p, list(fp.files), own, other, float(eer(own, other).eer))
         for p, fp, (own, other) in zip(plans, fps, own_other)
@@ -1080,8 +715,8 @@ def same_device(
     # 3. ageing table
     table = None
     if ageing and plans[0].ageing_groups and plans[1].ageing_groups:
-        groups = [_ageing_fingerprints(s, p.ageing_groups, region, ageing_residual, fingerprint_sigma, median_size,
-                                       progress, f"ageing {s.name}", options)
+        groups = [build_ageing_fingerprints(s, p.ageing_groups, region, ageing_residual, fingerprint_sigma,
+                                            median_size, progress, f"ageing {s.name}", options)
                   for s, p in zip((images_a, images_b), plans)]
         table = ageing_table(groups[0], groups[1], rng, names=(images_a.name, images_b.name),
                              residual=ageing_residual,
@@ -1101,79 +736,49 @@ def same_device(
     return SameDeviceResult(summaries[0], summaries[1], verdict, table, region.spec, parameters, warnings)
 
 
-# ----------------------------------------------------------------------------- report
+_OPTIONS = {"white_level", "black_level", "saturation_level", "saturation_dilate", "rolloff", "workers"}
 
 
-def add_to_report(result: SameDeviceResult, rep: Any, *, prefix: str = "") -> None:
-    """Add the score histograms, the DET curve and the ageing table of ``result`` to a Report.
+def _check_options(ageing_residual: str, options: dict[str, Any]) -> None:
+    if ageing_residual not in AGEING_RESIDUALS:
+        raise UsageError(f"ageing_residual={ageing_residual!r}: choose one of {', '.join(AGEING_RESIDUALS)}")
+    unknown = set(options) - _OPTIONS
+    if unknown:
+        raise UsageError(f"unknown option(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_OPTIONS))}")
 
-    Parameters
-    ----------
-    result : SameDeviceResult
-    rep : forensics.report.html.Report
-    prefix : str
-        Prepended to figure names (several results in one report).
-    """
-    from forensics.report.html import new_figure
-    from forensics.stats.scores import det_curve, plot_det, plot_score_histograms
 
-    a, b = result.set_a, result.set_b
-    e = result.eer
-    rep.text(e.verdict)
-    for w in result.warnings:
-        rep.text(w, note=True)
-    rep.table(
-        ["set", "images", "fingerprint images", "scoring images", "EER own vs other fingerprint"],
-        [[s.plan.name, s.plan.n_available, len(s.plan.fingerprint), len(s.plan.score), _pct(s.eer)] for s in (a, b)],
-    )
-    rep.table(
-        ["statistic", "value"],
-        [["EER", _pct(e.eer)], [f"{100 * e.level:g} % bootstrap interval", f"{_pct(e.ci[0])} – {_pct(e.ci[1])}"],
-         ["bootstrap replicates", e.n_boot], ["ROC-convex-hull EER", _pct(e.eer_convex_hull)],
-         ["AUC", f"{e.auc:.4f}"], ["matching / non-matching scores", f"{e.n_genuine} / {e.n_impostor}"],
-         ["expected interval width at EER 50 %", f"{100 * e.expected_width:.1f} points"]],
-    )
-    fig, axes = new_figure(11, 4, ncols=2)
-    for ax, s, other in ((axes[0], a, b), (axes[1], b, a)):
-        plot_score_histograms(ax, s.own, s.other, e.threshold, bins=40)
-        ax.set_title(f"images of {s.plan.name}", fontsize=9)
-        ax.set_xlabel(f"NCC (genuine: own fingerprint; impostor: fingerprint of {other.plan.name})", fontsize=8)
-    rep.figure(fig, f"{prefix}histograms", "NCC of each set's scoring images with their own set's fingerprint "
-               "(matching) and with the other set's (non-matching); dashed: the EER threshold.")
-    curve = det_curve(result.genuine, result.impostor)
-    if curve.far.size >= 2:
-        fig, ax = new_figure(5, 5)
-        plot_det(ax, curve, label=f"EER {_pct(e.eer)}", eer_point=e.eer)
-        ax.legend(frameon=False)
-        rep.figure(fig, f"{prefix}det", "DET curve of matching against non-matching scores (probit axes).")
-    else:
-        rep.text("DET curve: the scores separate completely (no operating point with both error rates strictly "
-                 "between 0 and 1), so there is no curve to draw.", note=True)
-    t = result.ageing
-    if t is None:
-        rep.text("Fingerprint ageing table: not computed.", note=True)
-        return
-    rep.table(
-        ["pairs of fingerprints", "mean NCC", f"{100 * t.level:g} % interval", "pairs"],
-        [[s.label, f"{s.mean:.4f}", f"[{s.ci[0]:.4f}, {s.ci[1]:.4f}]" if s.ci else "—", s.n_pairs]
-         for s in t.statistics],
-        caption=(f"Fingerprint ageing (the paper's table 2): {t.n_fingerprints[0]} and {t.n_fingerprints[1]} "
-                 f"fingerprints of {t.images_per_fingerprint[0]} and {t.images_per_fingerprint[1]} images, "
-                 f"{t.residual} residual; intervals: bootstrap over fingerprints"),
-    )
-    rep.text(t.verdict)
-    na = t.n_fingerprints[0]
-    m = t.matrix
-    iu_a = np.triu_indices(na, 1)
-    iu_b = np.triu_indices(t.n_fingerprints[1], 1)
-    families = [(m[:na, :na][iu_a], t.intra_a.label), (m[na:, na:][iu_b], t.intra_b.label),
-                (m[:na, na:].ravel(), t.inter.label)]
-    fig, ax = new_figure(6.4, 3.2)
-    for y, (values, _) in enumerate(families, start=1):
-        ax.plot(values, np.full(values.size, y), "|", ms=14, alpha=0.6, color=f"C{y - 1}")
-        if values.size:
-            ax.plot([float(np.mean(values))], [y], "D", color="k", ms=6)
-    ax.set_yticks([1, 2, 3], [f[1] for f in families], fontsize=8)
-    ax.set_ylim(0.4, 3.6)
-    ax.set_xlabel("NCC between two fingerprints (ticks: pairs; diamond: mean)")
-    rep.figure(fig, f"{prefix}ageing", "NCC of fingerprint pairs within each set and across the sets.")
+def _open_sets(set_a: Any, set_b: Any, names: tuple[str, str] | None) -> tuple[ImageSet, ImageSet]:
+    """The two sets as ImageSets with distinct names."""
+    name_a, name_b = names if names is not None else (None, None)
+    images_a = ImageSet.of(set_a, name_a or _default_name(set_a, "A"))
+    images_b = ImageSet.of(set_b, name_b or _default_name(set_b, "B"))
+    if images_a.name == images_b.name:
+        images_a = ImageSet.of(images_a, f"{images_a.name} (A)")
+        images_b = ImageSet.of(images_b, f"{images_b.name} (B)")
+    return images_a, images_b
+
+
+def _score_set(images: ImageSet, indices: Sequence[int], own_fp: Fingerprint, other_fp: Fingerprint, region: Region,
+               query_sigma: float, progress: Progress, options: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """NCC of each scoring image with its own set's and the other set's fingerprint (one residual per image)."""
+    shape = tuple(own_fp.frame_shape)
+    own = np.empty(len(indices))
+    other = np.empty(len(indices))
+    for j, i in enumerate(progress(indices, total=len(indices), desc=f"scoring {images.name}")):
+        image = images.load(i)
+        if tuple(image.shape[:2]) != shape:
+            raise InputError(f"{images.sources[i]}: frame is {image.shape[0]}×{image.shape[1]}, the others are "
+                             f"{shape[0]}×{shape[1]}")
+        query = prepare_query(image, region, sigma=query_sigma, source=images.sources[i], **options)
+        del image
+        own[j] = score_pair(own_fp, query, "ncc").value
+        other[j] = score_pair(other_fp, query, "ncc").value
+    return own, other
+
+
+def _power_warning(verdict: EerVerdict, score_images: int, level: float) -> str:
+    full = expected_eer_ci_width(2 * score_images, 2 * score_images, level)
+    return (f"statistical power: {verdict.n_genuine} matching and {verdict.n_impostor} non-matching scores; when the "
+            f"sets cannot be told apart the {100 * level:g} % EER interval is expected to be about "
+            f"{100 * verdict.expected_width:.0f} points wide (±{50 * verdict.expected_width:.0f} around 50 %), "
+            f"against {100 * full:.1f} points with {score_images} scoring images per set")

@@ -8,26 +8,37 @@ candidate effects a real sensor may add.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
+
 from forensics.sensor.model import (
-    PARTIAL,
-    STUCK,
-    DefectCatalogue,
+
     Device,
+
     Effect,
+
     FrameContext,
+
     Pattern,
+
     Stage,
+
     param,
+
     per_pixel,
+
     pixel_view,
+
     record_blocks,
+
     register_effect,
+
 )
+from forensics.sensor.evidence import Evidence
 
 
 # --------------------------------------------------------------------------- arrival helpers
@@ -108,10 +119,10 @@ class Growth(Effect):
         return {PARTIAL: self.rate_partial * span * uniform_detect_fraction(self.amp_partial, threshold.get(PARTIAL, 0)),
                 STUCK: self.rate_stuck * span * uniform_detect_fraction(self.amp_stuck, threshold.get(STUCK, 0))}
 
-    def fit(self, evidence: Any) -> None:
+    def fit(self, evidence: Evidence) -> "Growth":
         """Amplitudes from the largest detected ones (the paper's a_ps = max d, made unbiased: ·(n+1)/n)."""
-        self.amp_partial = evidence.amplitude_max(PARTIAL, self.amp_partial)
-        self.amp_stuck = evidence.amplitude_max(STUCK, self.amp_stuck)
+        return replace(self, amp_partial=evidence.amplitude_max(PARTIAL, self.amp_partial),
+                       amp_stuck=evidence.amplitude_max(STUCK, self.amp_stuck))
 
     def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:
         parts = []
@@ -120,6 +131,14 @@ class Growth(Effect):
             x, y = uniform_sites(len(onset), device.model.shape, rng)
             parts.append(records(x, y, kind, rng.uniform(0.0, 1.0, len(onset)) * amp, onset, self.name))
         return DefectCatalogue.concatenate(parts)
+
+
+def defect_rows(signal: np.ndarray, ctx: FrameContext, kind: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (pixels, channels) view of ``signal``, the rows of the defects of ``kind`` in effect at this
+    frame, and their amplitudes as a float32 column (empty when there are none)."""
+    sites = ctx.defects(kind)
+    rows = sites.y * ctx.shape[1] + sites.x
+    return pixel_view(signal), rows, sites.amplitude.astype(np.float32)[:, None]
 
 
 @register_effect
@@ -136,10 +155,8 @@ class Offset(Effect):
         return [Pattern("d", device.catalogue.amplitude, record_blocks(device.catalogue, device.model.shape, PARTIAL))]
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
-        sites = ctx.defects(PARTIAL)
-        if len(sites):
-            view = pixel_view(signal)
-            view[sites.y * ctx.shape[1] + sites.x] += sites.amplitude.astype(np.float32)[:, None]
+        view, rows, amplitude = defect_rows(signal, ctx, PARTIAL)
+        view[rows] += amplitude
         return signal
 
 
@@ -157,10 +174,8 @@ class Stuck(Effect):
         return [Pattern("c", device.catalogue.amplitude, record_blocks(device.catalogue, device.model.shape, STUCK))]
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
-        sites = ctx.defects(STUCK)
-        if len(sites):
-            view = pixel_view(signal)
-            view[sites.y * ctx.shape[1] + sites.x] = sites.amplitude.astype(np.float32)[:, None]
+        view, rows, amplitude = defect_rows(signal, ctx, STUCK)
+        view[rows] = amplitude
         return signal
 
 
@@ -360,7 +375,7 @@ class Clusters(Effect):
              * self.inside_fraction(device.model.shape) * uniform_detect_fraction(self.amplitude, threshold.get(PARTIAL, 0)))
         return {PARTIAL: n, STUCK: np.zeros_like(n)}
 
-    def fit(self, evidence: Any) -> None:
+    def fit(self, evidence: Evidence) -> "Clusters":
         """Thomas-process parameters by minimum contrast on Ripley's K of the detected sites.
 
         For uniform arrivals plus Thomas clusters, K(r) = πr² + A·(1 − exp(−r²/4σ²)) with
@@ -368,26 +383,25 @@ class Clusters(Effect):
         K fixes f·m, and so does the counts' dispersion, so ``mean_size`` keeps its value unless
         f would exceed one.  The cluster rate then follows from f and the observed arrival rate.
         """
-        self.amplitude = evidence.amplitude_max(PARTIAL, self.amplitude)
+        amplitude = evidence.amplitude_max(PARTIAL, self.amplitude)
         excess, sigma = evidence.cluster_excess()
-        p_detect = evidence.detect_fraction(PARTIAL, self.amplitude)
+        p_detect = evidence.detect_fraction(PARTIAL, amplitude)
         if excess <= 0 or p_detect <= 0:
-            self.rate = 0.0
-            return
-        self.spread = float(sigma)
+            return replace(self, amplitude=amplitude, rate=0.0)
         f_m = excess * evidence.site_intensity()
-        size = self.mean_size * p_detect
+        mean_size = self.mean_size
+        size = mean_size * p_detect
         if f_m > size:
-            self.mean_size = f_m / p_detect
+            mean_size = f_m / p_detect
             size = f_m
         fraction = min(1.0, f_m / size)
         per_mp_year = evidence.arrival_rate(PARTIAL)
-        self.rate = float(fraction * per_mp_year / (self.mean_size * p_detect * self.inside_fraction(evidence.shape)))
+        shaped = replace(self, amplitude=amplitude, spread=float(sigma), mean_size=mean_size)
+        return replace(shaped, rate=float(fraction * per_mp_year
+                                          / (mean_size * p_detect * shaped.inside_fraction(evidence.shape))))
 
-    def probe(self, evidence: Any) -> "Clusters":
+    def probe(self, evidence: Evidence) -> "Clusters":
         """Clusters of the default size and spread carrying a third of the observed arrivals."""
-        from dataclasses import replace
-
         amp = evidence.amplitude_max(PARTIAL, self.amplitude)
         p_detect = max(evidence.detect_fraction(PARTIAL, amp), 1e-3)
         rate = evidence.arrival_rate(PARTIAL) / 3 / (self.mean_size * p_detect)
@@ -429,12 +443,10 @@ class AcceleratingGrowth(Effect):
              * uniform_detect_fraction(self.amplitude, threshold.get(PARTIAL, 0)))
         return {PARTIAL: n, STUCK: np.zeros_like(n)}
 
-    def fit(self, evidence: Any) -> None:
-        self.amplitude = evidence.amplitude_max(PARTIAL, self.amplitude)
+    def fit(self, evidence: Evidence) -> "AcceleratingGrowth":
+        return replace(self, amplitude=evidence.amplitude_max(PARTIAL, self.amplitude))
 
-    def probe(self, evidence: Any) -> "AcceleratingGrowth":
-        from dataclasses import replace
-
+    def probe(self, evidence: Evidence) -> "AcceleratingGrowth":
         return replace(self, amplitude=evidence.amplitude_max(PARTIAL, self.amplitude))
 
     def arrivals(self, device: Device, rng: np.random.Generator) -> DefectCatalogue:

@@ -35,7 +35,7 @@ bounds).  It declares ``name``, ``description``, ``stage`` and the manifest
 ``fields`` it needs, and implements ``realize`` (device state) and/or
 ``apply`` (per frame).
 
-Model checking (:mod:`forensics.check.core`) uses the same objects.  An effect
+Model checking (:mod:`forensics.check`) uses the same objects.  An effect
 tells it
 
 * which of its parameters are fitted (``param(..., free=True)``) and their null
@@ -46,9 +46,11 @@ tells it
 * for ``NOISE`` effects, the temporal variance they add (:meth:`Effect.variance`);
 * for ``ARRIVAL`` effects, the expected number of detectable defects against
   time (:meth:`Effect.expected_arrivals`, Monte Carlo by default);
-* optionally a bespoke estimator (:meth:`Effect.fit`) and signature
-  (:meth:`Effect.signature`); the defaults are generic (Gauss–Newton through
-  ``apply``; finite differences of the prediction away from the null values).
+* optionally a bespoke estimator (:meth:`Effect.fit`, which returns a new
+  effect and never changes this one) and signature (:meth:`Effect.signature`);
+  the defaults are generic (Gauss–Newton through ``apply``; finite differences
+  of the prediction away from the null values).  What they may ask of the
+  measurements is :class:`forensics.sensor.evidence.Evidence`.
 
 Conventions that make the generic machinery work: ``apply`` is deterministic
 except at the ``NOISE`` stage; fixed patterns are stored as *deviations* so
@@ -61,7 +63,7 @@ import dataclasses
 import enum
 import importlib
 import importlib.util
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -70,7 +72,8 @@ import numpy as np
 
 from forensics._shared.arrays import bits_full_scale
 from forensics._shared.errors import InputError, UsageError
-from forensics.sensor.catalogue import KIND_CODES, KIND_NAMES, PARTIAL, STUCK, DefectCatalogue
+from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
+from forensics.sensor.evidence import ChannelSignature, Evidence, SignatureEvidence
 
 class Stage(enum.IntEnum):
     """Where an effect acts in the signal chain; effects run in increasing order."""
@@ -253,14 +256,17 @@ class Effect:
                 out[kind] += np.sum(cat.onset[sel][:, None] <= times[None, :], axis=0)
         return {k: v / draws for k, v in out.items()}
 
-    def fit(self, evidence: Any) -> None:
+    def fit(self, evidence: Evidence) -> "Effect":
         """Bespoke estimation of :attr:`self_fitted` parameters from the checker's evidence.
 
-        Called before the generic joint fit of the effect's channel, once per fitting cycle.
-        Default: nothing (the generic fit estimates the ``free`` parameters and the patterns).
+        Returns the effect with the estimated values — a new object (``dataclasses.replace``); an effect
+        is never changed in place.  Called before the generic joint fit of the effect's channel, once per
+        fitting cycle.  Default: the effect as it is (the generic fit estimates the ``free`` parameters
+        and the patterns).
         """
+        return self
 
-    def signature(self, evidence: Any) -> list[Any]:
+    def signature(self, evidence: SignatureEvidence) -> list[ChannelSignature]:
         """How the predicted statistics change when this effect leaves its null values.
 
         Default: the checker's generic finite-difference signature (through :meth:`apply`,
@@ -268,7 +274,7 @@ class Effect:
         """
         return evidence.signature(self)
 
-    def probe(self, evidence: Any) -> "Effect":
+    def probe(self, evidence: Evidence) -> "Effect":
         """The effect at a moderate strength, used where a signature must be simulated (arrival
         placement).  Default: the effect as it is."""
         return self

@@ -1,21 +1,24 @@
 """Scene images for users who have none: scikit-image's bundled photographs and procedural textures.
 
 Nothing is downloaded: only the sample images that ship inside scikit-image
-are used, plus seeded 1/f ("pink") textures.
+are used, plus seeded 1/f ("pink") textures.  Every function takes ``rng``, a Generator or an integer
+seed (:func:`forensics._shared.rng.as_generator`).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from forensics._shared.arrays import bits_full_scale
+from forensics._shared.rng import RngLike, as_generator
 
 #: scikit-image sample images bundled with the package (no network needed).
 BUNDLED = ("camera", "astronaut", "coffee", "chelsea", "brick", "grass", "gravel", "rocket", "moon", "coins", "clock",
            "immunohistochemistry", "hubble_deep_field", "cell", "retina")
 
 
-def pink_texture(shape: tuple[int, int], rng: np.random.Generator, exponent: float = 1.8) -> np.ndarray:
+def pink_texture(shape: tuple[int, int], rng: RngLike, exponent: float = 1.8) -> np.ndarray:
     """A zero-mean, unit-variance random field with power spectrum ∝ 1/f^exponent (float32)."""
+    rng = as_generator(rng)
     h, w = shape
     fy = np.fft.fftfreq(h)[:, None]
     fx = np.fft.rfftfreq(w)[None, :]
@@ -54,13 +57,14 @@ def _fit_to(img: np.ndarray, shape: tuple[int, int], rng: np.random.Generator) -
     return img
 
 
-def scene(shape: tuple[int, int], rng: np.random.Generator, channels: int = 1, kind: str = "mixed") -> np.ndarray:
+def scene(shape: tuple[int, int], rng: RngLike, channels: int = 1, kind: str = "mixed") -> np.ndarray:
     """One scene in [0, 1] (float32), ``(H, W)`` or ``(H, W, 3)``.
 
     ``kind``: ``'photo'`` (a bundled photograph, randomly cropped and scaled),
     ``'texture'`` (a pink-noise texture with a smooth illumination gradient) or
     ``'mixed'`` (either, at random).
     """
+    rng = as_generator(rng)
     if kind == "mixed":
         kind = "photo" if rng.random() < 0.5 else "texture"
     if kind == "photo":
@@ -85,9 +89,10 @@ def scene(shape: tuple[int, int], rng: np.random.Generator, channels: int = 1, k
     return np.clip(img * gain, 0.02, 0.98).astype(np.float32)
 
 
-def scene_image(shape: tuple[int, int], rng: np.random.Generator, channels: int = 1, bit_depth: int = 8,
+def scene_image(shape: tuple[int, int], rng: RngLike, channels: int = 1, bit_depth: int = 8,
                 kind: str = "mixed") -> np.ndarray:
     """A scene quantised to ``bit_depth`` bits (uint8 or uint16)."""
+    rng = as_generator(rng)
     full = bits_full_scale(bit_depth)
     img = np.rint(scene(shape, rng, channels, kind) * full)
     return img.astype(np.uint8 if bit_depth <= 8 else np.uint16)

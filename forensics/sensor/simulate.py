@@ -24,6 +24,7 @@ from forensics._shared.errors import InputError
 from forensics.io.images import write_image
 from forensics.sensor.model import Device, SensorModel
 from forensics._shared.progress import Progress, no_progress
+from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
 from forensics.sensor.scenes import scene_image
 
 
@@ -88,7 +89,7 @@ def age_dataset(
     out: str | os.PathLike,
     model: SensorModel,
     ages: list[float],
-    seed: int,
+    rng: RngLike,
     start_year: float | None = None,
     sensor_name: str | None = None,
     force: bool = False,
@@ -107,8 +108,10 @@ def age_dataset(
         The sensor model; its ``shape`` must match the images and its ``t0`` is T0.
     ages
         Sample ages in years (e.g. ``parse_years('0:96:8')``).
-    seed
-        Seed of the device's random history (and of any per-frame noise).
+    rng
+        Generator or integer seed of the device's random history (drawn from ``rng`` itself) and of the
+        per-frame noise (image ``i`` at step ``j`` from the sub-stream ``(i, j)`` of
+        :func:`~forensics._shared.rng.keyed_generator`: ``default_rng([seed, i, j])`` for an integer seed).
     start_year
         Decimal year of T0 written into the manifests (default ``model.t0``).
     image_format
@@ -116,7 +119,8 @@ def age_dataset(
 
     Writes ``OUT/year_NNN/`` (images + ``manifest.csv``), ``OUT/defects.csv``
     (the ground-truth catalogue: x, y, kind, amplitude, onset_year) and
-    ``OUT/sensor.json`` (size, parameters, seed).
+    ``OUT/sensor.json`` (size, parameters, and ``seed``: :func:`forensics._shared.rng.seed_record` of
+    ``rng``, the integer itself when one was given).
     """
     out = Path(out)
     refuse_inputs(out, [source.root])
@@ -131,8 +135,8 @@ def age_dataset(
         model = dataclasses.replace(model, t0=float(start_year))
     t0 = model.t0
     times = [t0 + a for a in ages]
-    rng = np.random.default_rng(seed)
-    device = model.realize(rng, times)
+    seed = seed_record(rng)
+    device = model.realize(as_generator(rng), times)
     contexts = [device.context(t) for t in times]
     names = [step_name(a) for a in ages]
     rows: list[list[dict[str, Any]]] = [[] for _ in ages]
@@ -147,11 +151,11 @@ def age_dataset(
             ext = image_format or (frame.path.suffix.lower() if frame.path.suffix.lower() in (".png", ".tif", ".tiff") else ".png")
             stem = Path(frame.file).stem
             for step, (ctx, name) in enumerate(zip(contexts, names)):
-                frame_rng = np.random.default_rng([seed, index, step])
+                frame_rng = keyed_generator(rng, index, step)
                 aged = device.expose(image, ctx, frame_rng)
                 fname = f"{stem}{ext}"
                 write_image(tmp / name / fname, aged)
-                rows[step].append({"file": fname, "device": f"sim-{sensor_name or 'custom'}-{seed}",
+                rows[step].append({"file": fname, "device": _device_name(sensor_name, seed),
                                    "captured": ctx.time, "exposure_s": frame.exposure_s, "iso": frame.iso,
                                    "temperature_c": frame.temperature_c, "subject": frame.subject,
                                    "source_file": frame.file, "age_years": ages[step]})
@@ -165,6 +169,12 @@ def age_dataset(
     counts = {"partial": [int(c) for c in device.catalogue.counts(times, kind=0)],
               "stuck": [int(c) for c in device.catalogue.counts(times, kind=1)]}
     return AgeingResult(out, [out / n for n in names], list(ages), len(source), len(device.catalogue), counts, sensor)
+
+
+def _device_name(sensor_name: str | None, seed: Any) -> str:
+    """The manifests' device name: ``sim-<sensor>-<seed>`` (the seed's entropy for a generator)."""
+    tag = seed if not isinstance(seed, dict) else f"{seed['entropy']}" + "".join(f"-{k}" for k in seed["spawn_key"])
+    return f"sim-{sensor_name or 'custom'}-{tag}"
 
 
 def write_catalogue(path: str | os.PathLike, device: Device, force: bool = False) -> Path:
@@ -185,7 +195,7 @@ def read_catalogue(path: str | os.PathLike):
     """Read a ``defects.csv`` back into a :class:`~forensics.sensor.model.DefectCatalogue`."""
     import csv
 
-    from forensics.sensor.model import KIND_CODES, DefectCatalogue
+    from forensics.sensor.catalogue import KIND_CODES, DefectCatalogue
 
     path = Path(path)
     try:
@@ -205,14 +215,17 @@ def read_catalogue(path: str | os.PathLike):
         raise InputError(f"{path}: malformed defect catalogue ({exc}); expected columns x, y, kind, amplitude, onset_year") from exc
 
 
-def make_scenes(out: str | os.PathLike, n: int, shape: tuple[int, int], seed: int, channels: int = 1, bit_depth: int = 8,
-                kind: str = "mixed", start_year: float | None = None, device: str | None = None, force: bool = False,
-                progress: Progress = no_progress, ext: str = ".png") -> Dataset:
-    """Write ``n`` scene images (a dataset with a manifest) for users who have no images of their own."""
+def make_scenes(out: str | os.PathLike, n: int, shape: tuple[int, int], rng: RngLike, channels: int = 1,
+                bit_depth: int = 8, kind: str = "mixed", start_year: float | None = None, device: str | None = None,
+                force: bool = False, progress: Progress = no_progress, ext: str = ".png") -> Dataset:
+    """Write ``n`` scene images (a dataset with a manifest) for users who have no images of their own.
+
+    ``rng`` (Generator or integer seed) draws every scene, one after the other.
+    """
     from forensics.io.dataset import open_dataset
 
     out = Path(out)
-    rng = np.random.default_rng(seed)
+    rng = as_generator(rng)
     rows = []
     with atomic_directory(out, force=force) as tmp:
         for i in progress(range(n), total=n, desc="scenes"):

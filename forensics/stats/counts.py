@@ -6,6 +6,7 @@ check's growth channel (:mod:`forensics.check`) and validation coverage (:mod:`f
 * exact intervals: Garwood (Poisson mean), Clopper–Pearson and mid-p (binomial proportion);
 * :func:`poisson_glm`: Poisson regression with log link and an exposure offset (IRLS);
 * :func:`trend_test`: likelihood-ratio test of a constant rate against a log-linear trend in time;
+* :func:`laplace_trend_z`: the grouped Laplace test of a constant rate (a z statistic, no fit needed);
 * :func:`poisson_deviance`: the deviance of observed against expected counts.
 """
 from __future__ import annotations
@@ -154,3 +155,23 @@ def poisson_deviance(obs: np.ndarray, exp: np.ndarray) -> float:
     exp = np.maximum(np.asarray(exp, float), 1e-12)
     term = np.where(obs > 0, obs * np.log(np.where(obs > 0, obs, 1) / exp), 0.0)
     return float(2.0 * np.sum(term - (obs - exp)))
+
+
+def laplace_trend_z(new_counts: Sequence[float], times: Sequence[float]) -> float | None:
+    """Grouped Laplace test of a constant arrival rate: z = (Σ dᵢ·mᵢ − n·m̄) / √(n·v) ~ N(0, 1).
+
+    ``new_counts[i]`` arrivals fell in (``times[i]``, ``times[i+1]``]; under a constant rate each arrival
+    time is uniform over the span, so its interval midpoint ``m`` has mean m̄ and variance v (the spread of
+    the midpoints weighted by interval length, plus the within-interval variance Δt²/12).  z > 0 means
+    arrivals late in the span (an accelerating rate).  None without arrivals or without a span.
+    """
+    t = np.asarray(times, float)
+    d = np.asarray(new_counts, float)
+    n = float(d.sum())
+    if n <= 0 or len(t) < 2 or t[-1] <= t[0]:
+        return None
+    mid = (t[1:] + t[:-1]) / 2
+    weight = np.diff(t) / (t[-1] - t[0])
+    mbar = float(np.sum(weight * mid))
+    var = float(np.sum(weight * (mid - mbar) ** 2) + np.sum(weight * np.diff(t) ** 2) / 12)
+    return float((np.sum(d * mid) - n * mbar) / math.sqrt(n * var))

@@ -75,8 +75,7 @@ __all__ = [
     "eer_convex_hull",
     "auc",
     "det_curve",
-    "plot_det",
-    "plot_score_histograms",
+    "as_scores",
     "bootstrap_eer",
     "bootstrap_ci",
     "decision_threshold_at_far",
@@ -270,7 +269,7 @@ class OperatingPoint:
 # --------------------------------------------------------------------------- input
 
 
-def _as_scores(values: ArrayLike, name: str) -> NDArray[np.float64]:
+def as_scores(values: ArrayLike, name: str) -> NDArray[np.float64]:
     """Validate and flatten one bag of scores into a float64 array (no copy if possible)."""
     try:
         arr = np.asarray(values, dtype=np.float64)
@@ -454,8 +453,8 @@ def roc(genuine: ArrayLike, impostor: ArrayLike) -> Roc:
     Two sorts and a merge, O(n log n); 5 million impostor scores take about
     0.2 s.  Ties between classes give a diagonal step (see module notes).
     """
-    g = np.sort(_as_scores(genuine, "genuine"))
-    i = np.sort(_as_scores(impostor, "impostor"))
+    g = np.sort(as_scores(genuine, "genuine"))
+    i = np.sort(as_scores(impostor, "impostor"))
     thr, gcount, icount = _tally(g, i)
     frr_cnt, far_cnt = _operating_counts(gcount, icount, 0, 0)
     thresholds = np.append(thr, np.inf)
@@ -569,8 +568,8 @@ def eer(genuine: ArrayLike, impostor: ArrayLike) -> EerResult:
     >>> eer([0.4, 0.9], [0.1, 0.5, 0.6]).eer
     0.5
     """
-    g = _as_scores(genuine, "genuine")
-    i = _as_scores(impostor, "impostor")
+    g = as_scores(genuine, "genuine")
+    i = as_scores(impostor, "impostor")
     if max(g.size, i.size) > _FAST_MIN:
         value, threshold = _eer_windowed(g, i)
     else:
@@ -624,8 +623,8 @@ def eer_convex_hull(genuine: ArrayLike, impostor: ArrayLike) -> EerResult:
     the one to report for the scores as they are; the hull EER says how
     much of it is due to poor ordering (calibration) near the crossing.
     """
-    g = np.sort(_as_scores(genuine, "genuine"))
-    i = np.sort(_as_scores(impostor, "impostor"))
+    g = np.sort(as_scores(genuine, "genuine"))
+    i = np.sort(as_scores(impostor, "impostor"))
     n_g, n_i = g.size, i.size
     thr, gcount, icount = _tally(g, i)
     frr_cnt, far_cnt = _operating_counts(gcount, icount, 0, 0)
@@ -670,8 +669,8 @@ def auc(genuine: ArrayLike, impostor: ArrayLike) -> float:
         AUC in [0, 1]; ties count one half.  Computed from exact integer
         counts after one sort per class.
     """
-    g = np.sort(_as_scores(genuine, "genuine"))
-    i = np.sort(_as_scores(impostor, "impostor"))
+    g = np.sort(as_scores(genuine, "genuine"))
+    i = np.sort(as_scores(impostor, "impostor"))
     _, gcount, icount = _tally(g, i)
     g_above = g.size - np.cumsum(gcount)  # genuine strictly above each distinct value
     twice = 2 * int(np.dot(icount, g_above)) + int(np.dot(icount, gcount))
@@ -724,7 +723,7 @@ def decision_threshold_at_far(
     """
     if not 0.0 <= far <= 1.0:
         raise UsageError(f"far must lie in [0, 1], got {far!r}")
-    i = _as_scores(impostor, "impostor")
+    i = as_scores(impostor, "impostor")
     n = i.size
     allowed = int(math.floor(far * n * (1.0 + 1e-12)))  # guard against 0.01*100 = 0.99999...
     if allowed >= n:
@@ -735,7 +734,7 @@ def decision_threshold_at_far(
     achieved = int(np.count_nonzero(i >= threshold)) / n
     frr = None
     if genuine is not None:
-        g = _as_scores(genuine, "genuine")
+        g = as_scores(genuine, "genuine")
         frr = int(np.count_nonzero(g < threshold)) / g.size
     return OperatingPoint(threshold, achieved, frr, float(far))
 
@@ -829,8 +828,8 @@ def bootstrap_eer(
     """
     rng = as_generator(rng)
     _check_boot(n_boot, level)
-    g = _as_scores(genuine, "genuine")
-    i = _as_scores(impostor, "impostor")
+    g = as_scores(genuine, "genuine")
+    i = as_scores(impostor, "impostor")
     estimate = eer(g, i).eer
     reps = _bootstrap_eer_replicates(g, i, rng, int(n_boot))
     return BootstrapResult(float(estimate), _percentile_ci(reps, level), reps, float(level))
@@ -880,7 +879,7 @@ def bootstrap_ci(
     _check_boot(n_boot, level)
     if not samples:
         raise UsageError("bootstrap_ci needs at least one sample")
-    data = [_as_scores(s, f"sample {k}") for k, s in enumerate(samples)]
+    data = [as_scores(s, f"sample {k}") for k, s in enumerate(samples)]
     n_boot = int(n_boot)
     reps = np.empty(n_boot, np.float64)
     if vectorized:
@@ -895,103 +894,3 @@ def bootstrap_ci(
         for b in range(n_boot):
             reps[b] = float(statistic(*(x[rng.integers(0, x.size, size=x.size)] for x in data)))
     return BootstrapResult(estimate, _percentile_ci(reps, level), reps, float(level))
-
-
-# --------------------------------------------------------------------------- plots
-
-
-_DET_TICKS = (0.0001, 0.001, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.6, 0.8, 0.9, 0.95, 0.98, 0.99, 0.999, 0.9999)
-
-
-def _percent_label(p: float) -> str:
-    return f"{100 * p:g}"
-
-
-def plot_det(
-    ax: Any,
-    curve: DetCurve,
-    *,
-    label: str | None = None,
-    eer_point: EerResult | float | None = None,
-    **line_kwargs: Any,
-) -> Any:
-    """Draw a DET curve on a matplotlib Axes (probit axes labelled in percent).
-
-    Parameters
-    ----------
-    ax : matplotlib.axes.Axes
-        Where to draw; no pyplot state is used.
-    curve : DetCurve
-        From :func:`det_curve`.
-    label : str, optional
-        Legend label of the curve.
-    eer_point : EerResult or float, optional
-        Marks the EER on the diagonal.
-    **line_kwargs
-        Passed to ``ax.plot``.
-
-    Returns
-    -------
-    matplotlib.lines.Line2D
-        The curve.
-    """
-    from scipy.stats import norm
-
-    (line,) = ax.plot(curve.far_probit, curve.frr_probit, label=label, **line_kwargs)
-    if eer_point is not None:
-        e = eer_point.eer if isinstance(eer_point, EerResult) else float(eer_point)
-        if 0.0 < e < 1.0:
-            z = float(norm.ppf(e))
-            ax.plot([z], [z], "o", color=line.get_color(), markersize=5)
-    both = np.concatenate([curve.far_probit, curve.frr_probit])
-    lo = float(np.min(both, initial=np.inf))
-    hi = float(np.max(both, initial=-np.inf))
-    ticks = [p for p in _DET_TICKS if (lo - 0.5) <= norm.ppf(p) <= (hi + 0.5)] or list(_DET_TICKS)
-    z = norm.ppf(ticks)
-    for set_ticks, set_labels in ((ax.set_xticks, ax.set_xticklabels), (ax.set_yticks, ax.set_yticklabels)):
-        set_ticks(z)
-        set_labels([_percent_label(p) for p in ticks])
-    ax.plot([z[0], z[-1]], [z[0], z[-1]], ls=":", color="0.6", lw=0.8)
-    ax.set_xlabel("False accept rate (%)")
-    ax.set_ylabel("False reject rate (%)")
-    ax.grid(True, alpha=0.3)
-    return line
-
-
-def plot_score_histograms(
-    ax: Any,
-    genuine: ArrayLike,
-    impostor: ArrayLike,
-    threshold: float | None = None,
-    *,
-    bins: int = 60,
-) -> None:
-    """Genuine and impostor score densities on shared bins, with an optional threshold line.
-
-    Parameters
-    ----------
-    ax : matplotlib.axes.Axes
-        Where to draw; no pyplot state is used.
-    genuine, impostor : array_like
-        Same-source and different-source scores.
-    threshold : float, optional
-        Drawn as a vertical dashed line (e.g. ``eer(...).threshold``).
-    bins : int
-        Number of shared bins over the finite score range.
-    """
-    g = _as_scores(genuine, "genuine")
-    i = _as_scores(impostor, "impostor")
-    pooled_finite = [x[np.isfinite(x)] for x in (g, i)]
-    lo = min((float(x.min()) for x in pooled_finite if x.size), default=0.0)
-    hi = max((float(x.max()) for x in pooled_finite if x.size), default=1.0)
-    if hi <= lo:
-        lo, hi = lo - 0.5, hi + 0.5
-    edges = np.linspace(lo, hi, bins + 1)
-    for x, name, color in ((g, "genuine", "C0"), (i, "impostor", "C3")):
-        counts, _ = np.histogram(x, bins=edges, density=True)
-        ax.stairs(counts, edges, label=f"{name} (n={x.size:,})", color=color, fill=False)
-    if threshold is not None and math.isfinite(threshold):
-        ax.axvline(threshold, ls="--", color="0.3", lw=1, label=f"threshold {threshold:.4g}")
-    ax.set_xlabel("score")
-    ax.set_ylabel("density")
-    ax.legend(frameon=False)

@@ -28,25 +28,35 @@ year), a query image at a random date, and whether the maximum-likelihood
 interval is the true one; accuracy is reported for the trials whose catalogue
 knows ≥ 10 defects with distinct onset intervals (the acceptance condition),
 and for all trials.
+
+Randomness: ``validate_defects`` and ``validate_dating`` take ``rng`` (a Generator or an int seed).  The
+scene pool and every trial draw from their own stream, keyed by the run's seed and the trial's index
+(:func:`forensics._shared.rng.keyed_generator`: ``default_rng([seed, 2, i])`` for trial ``i`` of an
+integer seed), so a trial can be re-run alone and trials can run in any order or process.  The figures
+and the report of a run are in :mod:`forensics.report.validate`.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
-from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect
-from forensics.sensor.effects import ReadNoise
 from forensics._shared.errors import InputError
-from forensics.defects.growth import Epoch, estimate_growth
-from forensics.sensor.model import PARTIAL, STUCK, Device, SensorModel
-from forensics.sensor.presets import PRESETS, preset
 from forensics._shared.progress import Progress, no_progress
-from forensics.sensor.scenes import scene
+from forensics._shared.rng import RngLike, as_generator, seed_record
+from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect
+from forensics.defects.growth import Epoch, estimate_growth
 from forensics.io.stack import StackAccumulator
+from forensics.sensor.effects import ReadNoise
+from forensics.sensor.catalogue import PARTIAL, STUCK
+from forensics.sensor.model import Device, SensorModel
+from forensics.sensor.presets import PRESETS, preset
+from forensics.sensor.scenes import scene
+from forensics._shared.rng import keyed_generator
+from forensics.validate.truth import match_truth
 
 NOMINAL = 0.95
 ACCEPT_COVERAGE = (0.92, 0.98)
@@ -91,7 +101,7 @@ class ValidationSettings:
         return self.target_new / (lam * mp * self.span)
 
 
-def scene_pool(settings: ValidationSettings, rng: np.random.Generator) -> list[np.ndarray]:
+def scene_pool(settings: ValidationSettings, rng: RngLike) -> list[np.ndarray]:
     """The scenes (incident light in DN) the trials draw their frames from.
 
     ``settings.scenes``: ``'smooth'`` (pink textures low-passed by a Gaussian of
@@ -100,6 +110,7 @@ def scene_pool(settings: ValidationSettings, rng: np.random.Generator) -> list[n
     """
     from scipy import ndimage
 
+    rng = as_generator(rng)
     full = np.float32(2.0**settings.bit_depth - 1)
     out = []
     for _ in range(settings.pool):
@@ -111,8 +122,9 @@ def scene_pool(settings: ValidationSettings, rng: np.random.Generator) -> list[n
     return out
 
 
-def pool_scene(pool: list[np.ndarray], index: int, rng: np.random.Generator) -> np.ndarray:
+def pool_scene(pool: list[np.ndarray], index: int, rng: RngLike) -> np.ndarray:
     """Scene ``index`` of the pool, randomly flipped (so epochs rarely repeat a scene exactly)."""
+    rng = as_generator(rng)
     img = pool[index]
     if rng.random() < 0.5:
         img = img[::-1]
@@ -128,9 +140,10 @@ def simulated_model(settings: ValidationSettings, counting: str = "poisson", rat
     return model.with_effects(ReadNoise(settings.read_noise))
 
 
-def image_epoch(device: Device, time: float, k: int, pool: list[np.ndarray], rng: np.random.Generator,
+def image_epoch(device: Device, time: float, k: int, pool: list[np.ndarray], rng: RngLike,
                 settings: ValidationSettings) -> DetectionResult:
     """K frames of the device at ``time`` (scenes from the pool), streamed into a detection."""
+    rng = as_generator(rng)
     acc = StackAccumulator()
     ctx = device.context(time)
     for i in rng.choice(len(pool), size=k, replace=k > len(pool)):
@@ -191,7 +204,7 @@ class ValidationResult:
     what: str
     settings: ValidationSettings
     trials: int
-    seed: int
+    seed: Any
     metrics: list[Metric]
     records: list[dict[str, Any]] = field(default_factory=list)
     curves: dict[str, Any] = field(default_factory=dict)
@@ -215,8 +228,9 @@ class ValidationResult:
 
 
 # =========================================================================== defects
-def defects_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator) -> dict[str, Any]:
+def defects_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: RngLike) -> dict[str, Any]:
     """One device, two epochs: detection scores and the growth estimates against the truth."""
+    rng = as_generator(rng)
     model = simulated_model(settings)
     growth = model.effect("growth")
     t1, t2 = settings.t0 + settings.span, settings.t0 + 2 * settings.span
@@ -227,24 +241,20 @@ def defects_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.
     for t in (t1, t2):
         det = image_epoch(device, t, settings.images, pool, rng, settings)
         epochs.append(Epoch(t, det, f"{t:g}"))
-        truth = device.catalogue.effective(t)
-        inside = det.mask[truth.y, truth.x] if det.mask is not None else np.ones(len(truth), bool)
-        truth = truth.select(inside)
-        true_sites = set(zip(truth.x.tolist(), truth.y.tolist()))
-        found = det.sites()
+        truth = match_truth(det, device.catalogue, t)
         part = truth.kind == PARTIAL
-        rel = truth.amplitude[part] / det.fits[0].scale
-        hit = np.array([s in found for s in zip(truth.x[part].tolist(), truth.y[part].tolist())], bool)
+        rel = truth.amplitude_sigma[part]
+        hit = truth.found[part]
         big = rel >= settings.amp_sigma
         rec["n_big"] += int(big.sum())
         rec["tp_big"] += int(hit[big].sum())
         rec["amp_sigma"] += rel.tolist()
         rec["found"] += hit.tolist()
-        rec["tp"] += len(found & true_sites)
-        rec["fp"] += len(found - true_sites)
+        rec["tp"] += truth.true_positives
+        rec["fp"] += truth.false_positives
         st = truth.kind == STUCK
         rec["stuck_n"] += int(st.sum())
-        rec["stuck_tp"] += sum(s in det.sites(STUCK) for s in zip(truth.x[st].tolist(), truth.y[st].tolist()))
+        rec["stuck_tp"] += int(truth.found_same_kind[st].sum())
     result = estimate_growth(epochs)
     area = epochs[0].detection.megapixels
     thr = np.mean([ep.detection.fits[0].tau - ep.detection.fits[0].center for ep in epochs])
@@ -259,18 +269,26 @@ def defects_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.
     return rec
 
 
-def validate_defects(settings: ValidationSettings, trials: int, seed: int = 0,
+def validate_defects(settings: ValidationSettings, trials: int, rng: RngLike = 0,
                      progress: Progress = no_progress) -> ValidationResult:
-    """Run ``trials`` detection-and-growth trials (see the module docstring)."""
-    rng = np.random.default_rng([seed, 1])
-    pool = scene_pool(settings, rng)
-    records = [defects_trial(settings, pool, np.random.default_rng([seed, 2, i]))
-               for i in progress(range(trials), total=trials, desc="validate defects")]
-    return summarise_defects(settings, records, seed)
+    """Run ``trials`` detection-and-growth trials (see the module docstring).
+
+    ``rng`` (Generator or int seed) keys the streams: the scene pool draws from sub-stream ``(1,)``, trial
+    ``i`` from ``(2, i)`` (:func:`~forensics._shared.rng.keyed_generator`); the result records
+    :func:`~forensics._shared.rng.seed_record` of it.
+    """
+    records = defects_records(settings, rng, progress(range(trials), total=trials, desc="validate defects"))
+    return summarise_defects(settings, records, seed_record(rng))
 
 
-def summarise_defects(settings: ValidationSettings, records: list[dict[str, Any]], seed: int = 0) -> ValidationResult:
-    """Metrics (with acceptance checks) from per-trial records."""
+def defects_records(settings: ValidationSettings, rng: RngLike, indices: Iterable[int]) -> list[dict[str, Any]]:
+    """The records of the defects trials ``indices`` of the run ``rng`` (any subset, e.g. one process's share)."""
+    pool = scene_pool(settings, keyed_generator(rng, 1))
+    return [defects_trial(settings, pool, keyed_generator(rng, 2, i)) for i in indices]
+
+
+def summarise_defects(settings: ValidationSettings, records: list[dict[str, Any]], seed: Any = 0) -> ValidationResult:
+    """Metrics (with acceptance checks) from per-trial records; ``seed`` is recorded as given."""
     n = len(records)
     tp_big = sum(r["tp_big"] for r in records)
     n_big = sum(r["n_big"] for r in records)
@@ -308,11 +326,12 @@ def summarise_defects(settings: ValidationSettings, records: list[dict[str, Any]
 
 
 # =========================================================================== dating
-def set_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator,
+def set_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: RngLike,
                      within: bool = False) -> dict[str, Any]:
     """Three reference epochs over one span, then a query set at a random date; is the date in the interval?"""
     from forensics.defects.dating import date_set
 
+    rng = as_generator(rng)
     t0 = settings.t0
     refs = [t0 + settings.span * f for f in (1.0, 1.5, 2.0)]
     tq = float(rng.uniform(refs[0], refs[-1]) if within else rng.uniform(refs[-1], refs[-1] + settings.span))
@@ -332,10 +351,11 @@ def set_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: 
             "position": res.position, "within": within}
 
 
-def image_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: np.random.Generator) -> dict[str, Any]:
+def image_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: RngLike) -> dict[str, Any]:
     """Yearly references with one new defect per year; a single query image at a random date."""
     from forensics.defects.dating import date_image
 
+    rng = as_generator(rng)
     years = settings.dating_years
     t0 = settings.t0
     refs = [t0 + k for k in range(1, years + 1)]
@@ -365,21 +385,34 @@ def image_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng
             "correct": res.best == true_j, "estimate": res.estimate}
 
 
-def validate_dating(settings: ValidationSettings, trials: int, seed: int = 0, progress: Progress = no_progress,
+def validate_dating(settings: ValidationSettings, trials: int, rng: RngLike = 0, progress: Progress = no_progress,
                     within_fraction: float = 0.25) -> ValidationResult:
-    """Run ``trials`` set-dating trials and ``trials`` single-image trials."""
-    rng = np.random.default_rng([seed, 3])
-    pool = scene_pool(settings, rng)
+    """Run ``trials`` set-dating trials and ``trials`` single-image trials.
+
+    ``rng`` (Generator or int seed) keys the streams: the scene pool draws from sub-stream ``(3,)``, set
+    trial ``i`` from ``(4, i)`` and image trial ``i`` from ``(5, i)``
+    (:func:`~forensics._shared.rng.keyed_generator`).
+    """
+    sets, images = dating_records(settings, rng, progress(range(trials), total=trials, desc="validate dating"),
+                                  within_fraction)
+    return summarise_dating(settings, sets, images, seed_record(rng))
+
+
+def dating_records(settings: ValidationSettings, rng: RngLike, indices: Iterable[int],
+                   within_fraction: float = 0.25) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The set- and image-dating records of the trials ``indices`` of the run ``rng`` (any subset)."""
+    pool = scene_pool(settings, keyed_generator(rng, 3))
     sets, images = [], []
-    for i in progress(range(trials), total=trials, desc="validate dating"):
-        trial_rng = np.random.default_rng([seed, 4, i])
+    for i in indices:
+        trial_rng = keyed_generator(rng, 4, i)
         sets.append(set_dating_trial(settings, pool, trial_rng, within=trial_rng.random() < within_fraction))
-        images.append(image_dating_trial(settings, pool, np.random.default_rng([seed, 5, i])))
-    return summarise_dating(settings, sets, images, seed)
+        images.append(image_dating_trial(settings, pool, keyed_generator(rng, 5, i)))
+    return sets, images
 
 
 def summarise_dating(settings: ValidationSettings, sets: list[dict[str, Any]], images: list[dict[str, Any]],
-                     seed: int = 0) -> ValidationResult:
+                     seed: Any = 0) -> ValidationResult:
+    """Metrics (with acceptance checks) from per-trial records; ``seed`` is recorded as given."""
     n = len(sets)
     metrics = [proportion("set dating: coverage of the 95 % interval", sum(r["covered"] for r in sets), n,
                           *ACCEPT_COVERAGE)]
@@ -401,59 +434,3 @@ def summarise_dating(settings: ValidationSettings, sets: list[dict[str, Any]], i
     return ValidationResult("dating", settings, n, seed, metrics, sets + images,
                             {"interval_error_histogram": np.bincount(np.abs(err)).tolist() if len(err) else [],
                              "set_coverage": [[r["t_true"], r["lo"], r["hi"]] for r in sets]})
-
-
-# =========================================================================== report
-def coverage_figure(result: ValidationResult):
-    """Observed coverage / proportions with exact 95 % intervals, against the acceptance band."""
-    from forensics.report.html import new_figure
-
-    props = [m for m in result.metrics if m.ci is not None and 0 <= m.value <= 1 and "bias" not in m.name]
-    fig, ax = new_figure(7.0, 0.5 + 0.45 * max(len(props), 1))
-    for i, m in enumerate(props):
-        colour = "C2" if m.passed else ("C3" if m.passed is False else "C0")
-        ax.errorbar([m.value], [i], xerr=[[m.value - m.ci[0]], [m.ci[1] - m.value]], fmt="o", color=colour,
-                    capsize=3)
-    ax.axvspan(*ACCEPT_COVERAGE, color="C2", alpha=0.15, label="coverage acceptance [0.92, 0.98]")
-    ax.axvline(NOMINAL, color="C2", lw=1)
-    ax.set_yticks(range(len(props)))
-    ax.set_yticklabels([m.name for m in props], fontsize=7)
-    ax.set_xlim(min(0.5, min((m.ci[0] for m in props), default=0.5)) - 0.02, 1.01)
-    ax.set_xlabel("proportion over trials (exact 95 % interval)")
-    ax.legend(fontsize=7, loc="lower left")
-    return fig
-
-
-def recall_figure(result: ValidationResult):
-    from forensics.report.html import new_figure
-
-    curve = result.curves.get("recall_vs_amplitude_sigma", [])
-    fig, ax = new_figure(6.4, 3.6)
-    xs = [c[0] for c in curve if c[2] is not None]
-    ys = [c[2] for c in curve if c[2] is not None]
-    ax.plot(xs, ys, "o-")
-    ax.axvline(result.settings.sigma, color="C3", lw=1, label=f"τ = {result.settings.sigma:g}σ")
-    ax.axvline(result.settings.amp_sigma, color="C2", lw=1, ls="--", label=f"{result.settings.amp_sigma:g}σ")
-    x = np.linspace(0, 16, 200)
-    ax.plot(x, stats.norm.cdf(x - result.settings.sigma), color="0.5", lw=0.8, label="Φ(a/σ − τ/σ)")
-    ax.set_xlabel("defect amplitude / σ of d̂")
-    ax.set_ylabel("recall")
-    ax.legend(fontsize=8)
-    return fig
-
-
-def validation_report(result: ValidationResult) -> Any:
-    from forensics.report.html import Report
-
-    rep = Report(f"Validation on simulated ground truth: {result.what}")
-    s = result.settings
-    rep.text(f"{result.trials} trials, seed {result.seed}; sensor {s.sensor} ({s.bit_depth}-bit, "
-             f"{s.shape[1]}×{s.shape[0]}, rates ×{s.rate_scale():.4g}, read noise {s.read_noise:g} DN), "
-             f"{s.images} images per epoch, q = {s.q}, τ = {s.sigma:g}σ.")
-    rep.table(["quantity", "trials", "value", "95 % interval", "acceptance", ""], result.table())
-    rep.figure(coverage_figure(result), "coverage", "Coverage and proportions with exact 95 % intervals; green band: "
-               "the acceptance range for interval coverage.")
-    if result.what == "defects":
-        rep.figure(recall_figure(result), "recall", "Detection recall against amplitude in units of σ of d̂, with "
-                   "the normal-model expectation Φ(a/σ − τ/σ).")
-    return rep

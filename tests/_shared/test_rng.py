@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from forensics._shared.rng import as_generator, seed_record, spawn
+from forensics._shared.rng import as_generator, keyed_generator, seed_record, spawn
 
 
 def test_int_seed_equals_default_rng():
@@ -32,3 +32,15 @@ def test_seed_record_repeats_the_run():
     rec = seed_record(child)
     seq = np.random.SeedSequence(rec["entropy"], spawn_key=tuple(rec["spawn_key"]))
     assert np.array_equal(np.random.default_rng(seq).random(4), spawn(5, 3)[2].random(4))
+
+
+def test_keyed_generator_int_and_generator_agree():
+    from forensics._shared.rng import spawn
+
+    a = keyed_generator(7, 2, 3).random(4)
+    np.testing.assert_array_equal(a, np.random.default_rng([7, 2, 3]).random(4))
+    g = np.random.default_rng(7)
+    np.testing.assert_array_equal(keyed_generator(g, 2, 3).random(4), a)
+    assert g.random() == np.random.default_rng(7).random()  # the generator's own state is not advanced
+    c0, c1 = spawn(7, 2)
+    assert keyed_generator(c0, 1).random() != keyed_generator(c1, 1).random() != keyed_generator(7, 1).random()

@@ -13,14 +13,8 @@ from scipy import ndimage
 
 from forensics.fixtures.hidden import CANDIDATES, Design, make_hidden
 from forensics.stats import spatial as sp
-from forensics.check.core import (
-    KERNEL,
-    KERNEL_VAR,
-    _random_effect_lr,
-    check,
-    loo_quadratic_kernel,
-    scene_estimate,
-)
+from forensics.check import KERNEL_VAR, check, loo_quadratic_kernel, scene_estimate
+from forensics.check.scoretests import random_effect_lr as _random_effect_lr
 
 PIXEL = ("prnu", "dark_current", "gain", "nonlinearity")
 
@@ -95,8 +89,8 @@ def test_random_effect_likelihood_ratio():
 # ----------------------------------------------------------------------------------------- hidden effects
 @pytest.mark.parametrize("seed", [11, 12])
 def test_null_case_flags_nothing(tmp_path, seed):
-    data = make_hidden("none", tmp_path / "none", seed=seed)
-    r = check(data.out, seed=seed)
+    data = make_hidden("none", tmp_path / "none", rng=seed)
+    r = check(data.out, rng=seed)
     assert r.flagged == []
     assert r.error["pixel"] < 1.1 and r.error["variance"] < 0.05 and r.error["growth"] < 3
     assert all(p is None or p >= 0.001 for p in r.gof.values())
@@ -106,8 +100,8 @@ def test_null_case_flags_nothing(tmp_path, seed):
 @pytest.mark.parametrize("effect", CANDIDATES)
 @pytest.mark.parametrize("seed", [1, 2])
 def test_hidden_effect_is_named_and_adding_it_fits(tmp_path, effect, seed):
-    data = make_hidden(effect, tmp_path / effect, seed=seed)
-    after = check(data.out, add=[effect], seed=seed)
+    data = make_hidden(effect, tmp_path / effect, rng=seed)
+    after = check(data.out, add=[effect], rng=seed)
     before = after.baseline
     assert before.candidates[0].effect == effect, [(c.effect, c.delta_bic) for c in before.candidates]
     assert before.candidates[0].flagged
@@ -161,8 +155,8 @@ def test_user_defined_effect_shows_as_misfit_and_adding_it_fits(tmp_path):
     path = tmp_path / "column.py"
     path.write_text(USER_EFFECT)
     spec = f"{path}:ColumnOffset"
-    data = make_hidden(spec, tmp_path / "data", seed=5)
-    after = check(data.out, add=[spec], seed=5)
+    data = make_hidden(spec, tmp_path / "data", rng=5)
+    after = check(data.out, add=[spec], rng=5)
     before = after.baseline
     # the base model fails, and the residual map shows the column structure
     assert before.gof["pixel"] < 1e-3
@@ -180,8 +174,8 @@ def test_user_defined_effect_shows_as_misfit_and_adding_it_fits(tmp_path):
 def test_warns_when_the_data_cannot_separate(tmp_path):
     """One exposure time and one temperature: dark current looks like a constant offset."""
     design = Design(exposures=(1.0,), temperatures=(20.0,), ages=(0, 1, 2, 3, 4, 5))
-    data = make_hidden("dark_current", tmp_path / "dc", seed=3, design=design)
-    r = check(data.out, seed=3)
+    data = make_hidden("dark_current", tmp_path / "dc", rng=3, design=design)
+    r = check(data.out, rng=3)
     text = " ".join(r.warnings)
     assert "exposure_s" in text and "temperature_c" in text
     assert any("dark_current" in w and "add frames" in w for w in r.warnings), r.warnings
@@ -192,15 +186,15 @@ def test_warns_when_the_data_cannot_separate(tmp_path):
 def test_warns_about_too_few_light_levels(tmp_path):
     design = Design(subjects={"dark": 0.0, "flat": 1400.0}, reference_subjects=("dark", "flat"), exposures=(1.0,),
                     ages=(0, 1, 2, 3, 4))
-    data = make_hidden("none", tmp_path / "two", seed=4, design=design)
-    r = check(data.out, seed=4)
+    data = make_hidden("none", tmp_path / "two", rng=4, design=design)
+    r = check(data.out, rng=4)
     assert r.data["light_levels"] == 2
     assert any("light level" in w and "third" in w for w in r.warnings), r.warnings
 
 
 def test_json_has_the_documented_keys(tmp_path):
-    data = make_hidden("none", tmp_path / "n", seed=21, design=Design(ages=(0, 1, 2, 3, 4)))
-    d = check(data.out, seed=1).to_dict()
+    data = make_hidden("none", tmp_path / "n", rng=21, design=Design(ages=(0, 1, 2, 3, 4)))
+    d = check(data.out, rng=1).to_dict()
     assert {"effects", "error", "gof", "candidates"} <= set(d)
     assert set(d["error"]) == {"pixel", "classes", "variance", "growth"}
     assert set(d["error"]["classes"]) == {"normal", "partial", "stuck"}

@@ -18,7 +18,7 @@ def aged(tmp_path_factory):
     root = tmp_path_factory.mktemp("defects")
     src = make_scenes(root / "scenes", 12, SHAPE, 0, bit_depth=16)
     model = preset("G", SHAPE, bit_depth=16, rate_scale=300)
-    age_dataset(src, root / "aged", model, [0, 4, 8, 12], seed=1, start_year=2000.0, sensor_name="G")
+    age_dataset(src, root / "aged", model, [0, 4, 8, 12], rng=1, start_year=2000.0, sensor_name="G")
     return root
 
 

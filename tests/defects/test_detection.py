@@ -19,7 +19,7 @@ from forensics.defects.detection import (
 )
 from forensics.sensor.effects import ReadNoise
 from forensics._shared.errors import InputError, UsageError
-from forensics.sensor.model import PARTIAL, STUCK
+from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.sensor.presets import preset
 from forensics.sensor.scenes import scene
 from forensics.io.stack import StackStats, stack_stats

@@ -17,11 +17,10 @@ from scipy import ndimage
 
 from forensics.demo.prnu import sensor_model, simulated_set
 from forensics._shared.errors import InputError, UsageError
-from forensics.sensor.model import PARTIAL, STUCK
+from forensics.sensor.catalogue import PARTIAL, STUCK
+from forensics.prnu.ageing import MedianFingerprintBuilder, ageing_table
 from forensics.prnu.samedevice import (
     ImageSet,
-    MedianFingerprintBuilder,
-    ageing_table,
     eer_verdict,
     expected_eer_ci_width,
     plan_set,

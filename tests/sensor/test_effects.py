@@ -8,17 +8,8 @@ import pytest
 
 from forensics.sensor.effects import Clusters, DarkCurrent, Gain, Growth, Nonlinearity, Prnu, ReadNoise, ShotNoise, describe_effects
 from forensics._shared.errors import UsageError
-from forensics.sensor.model import (
-    EFFECTS,
-    PARTIAL,
-    STUCK,
-    Effect,
-    Pattern,
-    SensorModel,
-    Stage,
-    make_effect,
-    param,
-)
+from forensics.sensor.catalogue import PARTIAL, STUCK
+from forensics.sensor.model import EFFECTS, Effect, Pattern, SensorModel, Stage, make_effect, param
 from forensics.sensor.presets import preset
 
 CANDIDATES = ("prnu", "dark_current", "gain", "nonlinearity", "shot_noise", "clusters", "accelerating_growth")

@@ -14,7 +14,8 @@ from scipy import stats
 
 from forensics.sensor.effects import Growth, Offset, Prnu, ReadNoise, Stuck
 from forensics._shared.errors import UsageError
-from forensics.sensor.model import PARTIAL, STUCK, DefectCatalogue, SensorModel, make_effect, quantize
+from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
+from forensics.sensor.model import SensorModel, make_effect, quantize
 from forensics.sensor.presets import PRESETS, preset
 
 ALPHA = 1e-3

@@ -9,8 +9,8 @@ import pytest
 
 from forensics.io.dataset import open_dataset
 from forensics._shared.errors import InputError
-from forensics.io.images import write_image
-from forensics.sensor.model import STUCK
+from forensics.io.images import read_image, write_image
+from forensics.sensor.catalogue import STUCK
 from forensics.sensor.presets import preset
 from forensics.sensor.simulate import age_dataset, make_scenes, parse_years, read_catalogue
 
@@ -18,7 +18,7 @@ from forensics.sensor.simulate import age_dataset, make_scenes, parse_years, rea
 @pytest.fixture
 def tiff16(tmp_path):
     """A folder of 16-bit grey TIFF scenes."""
-    return make_scenes(tmp_path / "src", 4, (60, 80), seed=3, bit_depth=16, ext=".tif", kind="texture")
+    return make_scenes(tmp_path / "src", 4, (60, 80), rng=3, bit_depth=16, ext=".tif", kind="texture")
 
 
 def test_parse_years():
@@ -32,7 +32,7 @@ def test_parse_years():
 def test_ageing_16bit_tiffs_satisfies_the_invariants(tiff16, tmp_path):
     ages = parse_years("0:96:24")
     model = preset("H", (60, 80), bit_depth=16, rate_scale=20.0)
-    result = age_dataset(tiff16, tmp_path / "aged", model, ages, seed=9, start_year=2001.0, sensor_name="H")
+    result = age_dataset(tiff16, tmp_path / "aged", model, ages, rng=9, start_year=2001.0, sensor_name="H")
     sensor = json.loads((tmp_path / "aged" / "sensor.json").read_text())
     assert sensor["seed"] == 9 and sensor["size"] == {"width": 80, "height": 60, "channels": 1}
     assert sensor["model"]["effects"][0]["params"]["rate_partial"] == pytest.approx(8 * 0.6659 * 20)
@@ -61,22 +61,22 @@ def test_ageing_16bit_tiffs_satisfies_the_invariants(tiff16, tmp_path):
 
 
 def test_rgb_8bit_and_determinism(tmp_path):
-    src = make_scenes(tmp_path / "src", 2, (40, 50), seed=1, channels=3)
+    src = make_scenes(tmp_path / "src", 2, (40, 50), rng=1, channels=3)
     model = preset("G", (40, 50), rate_scale=200.0)
     for name in ("a", "b"):
-        age_dataset(src, tmp_path / name, model, [0.0, 10.0], seed=5, start_year=2000.0)
+        age_dataset(src, tmp_path / name, model, [0.0, 10.0], rng=5, start_year=2000.0)
     assert (tmp_path / "a" / "defects.csv").read_text() == (tmp_path / "b" / "defects.csv").read_text()
     for f in ("year_010/scene_0000.png", "year_010/scene_0001.png"):
         a, b = (open_dataset(tmp_path / n / "year_010") for n in "ab")
         np.testing.assert_array_equal(a[0].load(), b[0].load())
         assert a[0].load().shape == (40, 50, 3)
-    age_dataset(src, tmp_path / "c", model, [0.0, 10.0], seed=6, start_year=2000.0)
+    age_dataset(src, tmp_path / "c", model, [0.0, 10.0], rng=6, start_year=2000.0)
     assert (tmp_path / "c" / "defects.csv").read_text() != (tmp_path / "a" / "defects.csv").read_text()
 
 
 def test_defects_csv_columns(tmp_path):
-    src = make_scenes(tmp_path / "src", 1, (30, 30), seed=1)
-    age_dataset(src, tmp_path / "aged", preset("B", (30, 30), rate_scale=1000.0), [0.0, 5.0], seed=1)
+    src = make_scenes(tmp_path / "src", 1, (30, 30), rng=1)
+    age_dataset(src, tmp_path / "aged", preset("B", (30, 30), rate_scale=1000.0), [0.0, 5.0], rng=1)
     with open(tmp_path / "aged" / "defects.csv") as handle:
         rows = list(csv.DictReader(handle))
     assert rows and set(rows[0]) >= {"x", "y", "kind", "amplitude", "onset_year"}
@@ -84,20 +84,20 @@ def test_defects_csv_columns(tmp_path):
 
 
 def test_mixed_sizes_fail_before_writing(tmp_path):
-    src = make_scenes(tmp_path / "src", 2, (30, 30), seed=1)
+    make_scenes(tmp_path / "src", 2, (30, 30), rng=1)
     write_image(tmp_path / "src" / "odd.png", np.zeros((31, 30), np.uint8))
     (tmp_path / "src" / "manifest.csv").unlink()
     with pytest.raises(InputError, match=r"odd\.png: size"):
-        age_dataset(open_dataset(tmp_path / "src"), tmp_path / "out", preset("A", (30, 30)), [0.0, 1.0], seed=1)
+        age_dataset(open_dataset(tmp_path / "src"), tmp_path / "out", preset("A", (30, 30)), [0.0, 1.0], rng=1)
     assert not (tmp_path / "out").exists()
 
 
 def test_corrupt_file_leaves_nothing_half_written(tmp_path):
-    src = make_scenes(tmp_path / "src", 3, (30, 30), seed=1)
+    make_scenes(tmp_path / "src", 3, (30, 30), rng=1)
     bad = tmp_path / "src" / "scene_0002.png"
     bad.write_bytes(bad.read_bytes()[:200])
     with pytest.raises(InputError, match="scene_0002.png"):
-        age_dataset(open_dataset(tmp_path / "src"), tmp_path / "out", preset("A", (30, 30)), [0.0, 1.0], seed=1)
+        age_dataset(open_dataset(tmp_path / "src"), tmp_path / "out", preset("A", (30, 30)), [0.0, 1.0], rng=1)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]  # no output, no temporary folder
 
 
@@ -149,3 +149,18 @@ def test_cli_usage_errors_exit_2(cli, tmp_path):
     assert code == 2
     code, out, _ = cli("simulate", "age", "--help")
     assert code == 0 and "example:" in out
+
+
+# ----------------------------------------------------------------------------- the rng convention
+
+
+def test_age_dataset_int_seed_equals_its_generator(tmp_path):
+    src = make_scenes(tmp_path / "src", 2, (30, 30), rng=1)
+    model = preset("B", (30, 30), rate_scale=1000.0)
+    r_int = age_dataset(src, tmp_path / "a", model, [0.0, 5.0], rng=4)
+    r_gen = age_dataset(src, tmp_path / "b", model, [0.0, 5.0], rng=np.random.default_rng(4))
+    assert r_int.counts == r_gen.counts and r_int.sensor["seed"] == 4
+    assert r_gen.sensor["seed"] == {"entropy": 4, "spawn_key": []}
+    for name in ("year_000", "year_005"):
+        for f in sorted((tmp_path / "a" / name).glob("*.png")):
+            np.testing.assert_array_equal(read_image(f), read_image(tmp_path / "b" / name / f.name))

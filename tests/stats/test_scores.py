@@ -25,10 +25,9 @@ from forensics.stats.scores import (
     det_curve,
     eer,
     eer_convex_hull,
-    plot_det,
-    plot_score_histograms,
     roc,
 )
+from forensics.report.scores import plot_det, plot_score_histograms
 
 
 # --------------------------------------------------------------------------- oracles

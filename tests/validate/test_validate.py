@@ -10,14 +10,14 @@ from forensics.validate.trials import (
     summarise_defects,
     validate_dating,
     validate_defects,
-    validation_report,
 )
+from forensics.report.validate import validation_report
 
 FAST = ValidationSettings(shape=(96, 96), pool=48, images=50, dating_years=12, dating_images=15)
 
 
 def test_defects_fast_subset():
-    res = validate_defects(FAST, trials=20, seed=11)
+    res = validate_defects(FAST, trials=20, rng=11)
     m = {x.name: x for x in res.metrics}
     recall = m["detection recall, amplitude ≥ 6σ"]
     precision = m["detection precision"]
@@ -35,7 +35,7 @@ def test_defects_fast_subset():
 
 
 def test_dating_fast_subset(tmp_path):
-    res = validate_dating(FAST, trials=8, seed=12)
+    res = validate_dating(FAST, trials=8, rng=12)
     m = {x.name: x for x in res.metrics}
     assert m["set dating: coverage of the 95 % interval"].n == 8
     assert m["set dating: coverage of the 95 % interval"].value >= 0.75
@@ -64,3 +64,10 @@ def test_summaries_check_acceptance():
     p = proportion("x", 95, 100, 0.92, 0.98)
     assert p.passed and p.ci[0] < 0.95 < p.ci[1]
     assert np.isnan(proportion("y", 0, 0).value)
+
+
+def test_int_seed_and_its_generator_give_one_run():
+    small = ValidationSettings(shape=(48, 48), pool=6, images=10)
+    a = validate_defects(small, trials=2, rng=3)
+    b = validate_defects(small, trials=2, rng=np.random.default_rng(3))
+    assert a.records == b.records and a.seed == 3

@@ -1,0 +1,84 @@
+"""Design warnings: what the data cannot show, and which frames to add."""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from forensics.check.classes import QUANT_VAR
+from forensics.check.diagnosis import FLAG_DBIC
+from forensics.check.evidence import Evidence
+from forensics.check.params import is_pixel
+from forensics.check.pixels import PixelData
+from forensics.check.result import Candidate
+from forensics.sensor.model import EFFECTS, Effect, Stage
+
+
+def design_warnings(ev: Evidence, px: PixelData, candidates: list[Candidate], effects: list[Effect]) -> list[str]:
+    """What the data lack to test or separate the candidates, and what frames to add."""
+    meas = ev.meas
+    out = []
+    levels = light_levels(ev, px)
+    mins = {"exposure_s": 3, "iso": 2, "temperature_c": 2}
+    have = {name: meas.field_values(name) for name in mins}
+    for name, need in mins.items():
+        if len(have[name]) < need:
+            users = [n for n, c in EFFECTS.items() if c.role == "candidate" and name in c.fields]
+            out.append(f"the data have {len(have[name])} value(s) of {name} ({_fmt_values(have[name])}); "
+                       f"at least {need} are needed to test {', '.join(users) or 'effects that need it'}: "
+                       f"add frames at another {name}")
+    if levels < 3:
+        users = [n for n, c in EFFECTS.items() if c.role == "candidate" and c.stage in (Stage.GAIN, Stage.RESPONSE)]
+        out.append(f"the data have {levels} distinct light level(s); with fewer than 3 a per-pixel response and a "
+                   f"response curve cannot be told apart ({', '.join(users)}): add flat fields at a third light level")
+    reps = [g.n for g in meas.groups]
+    if min(reps) < 2:
+        out.append(f"{sum(1 for r in reps if r < 2)} condition(s) have a single frame: they serve defect detection only; "
+                   "take 2 frames per condition for the noise floor")
+    if meas.has_time and len(ev.times) < 5:
+        out.append(f"only {len(ev.times)} epochs: defect arrival and placement need at least 5 epochs of a few frames each")
+    # near-ties between flagged candidates
+    flagged = [c for c in candidates if c.flagged]
+    for i, a in enumerate(flagged):
+        for b in flagged[i + 1:]:
+            if abs(a.delta_bic - b.delta_bic) < FLAG_DBIC and {t.channel for t in a.tests} & {t.channel for t in b.tests}:
+                out.append(f"the data cannot separate {a.effect} from {b.effect} (predicted ΔBIC "
+                           f"{a.delta_bic:.3g} vs {b.delta_bic:.3g}): {_frames_to_add(ev, px, a.effect, b.effect)}")
+    for c in candidates:
+        if not c.tests:
+            stage = EFFECTS[c.effect].stage.name.lower() if c.effect in EFFECTS else "?"
+            out.append(f"{c.effect} cannot be tested with these data: its signature is zero here (it acts at the "
+                       f"{stage} stage; e.g. on defective pixels, which these data may lack)")
+        if c.absorbed:
+            model_names = ", ".join(e.key for e in effects if is_pixel(e))
+            out.append(f"{c.effect} cannot be detected with these data: its signature is absorbed by the fitted "
+                       f"parameters of {model_names}; {_frames_to_add(ev, px, c.effect, None)}")
+    return out
+
+
+def _fmt_values(values: list[Any]) -> str:
+    return ", ".join(f"{v:g}" for v in values) if values else "none"
+
+
+def light_levels(ev: Evidence, px: PixelData) -> int:
+    """Number of distinct light levels over the repeated conditions (medians more than 10 noise σ apart)."""
+    meds = np.sort([float(np.median(px.scene_a[r][ev.meas.interior])) for r in range(len(ev.rep))])
+    noise = math.sqrt(max(float(np.median(px.floor)), QUANT_VAR))
+    if meds.size == 0:
+        return 0
+    return int(1 + np.sum(np.diff(meds) > 10 * noise))
+
+
+def _frames_to_add(ev: Evidence, px: PixelData, a: str, b: str | None) -> str:
+    fa = set(EFFECTS[a].fields) if a in EFFECTS else set()
+    fb = set(EFFECTS[b].fields) if b in EFFECTS else set()
+    fields = sorted((fa ^ fb) if b else fa) or sorted(fa | fb)
+    fields = [f for f in fields if f != "captured"]
+    parts = []
+    for f in fields:
+        vals = ev.meas.field_values(f)
+        parts.append(f"frames at another {f} (the data have {_fmt_values(vals)}), other conditions unchanged")
+    if not parts:
+        parts.append(f"flat fields at more light levels (the data have {light_levels(ev, px)})")
+    return "add " + "; ".join(parts)

@@ -1,0 +1,114 @@
+"""Diagnosis: rank the candidate effects by how much adding each would improve the fit, without fitting them.
+
+For each candidate not in the model, its signature (:mod:`forensics.check.signatures`) is tested against
+the fitted model's residuals in every channel (:mod:`forensics.check.scoretests`).  Each candidate gets a
+predicted ΔBIC ≈ LM − q·ln n (q: its parameter count, n: the main channel's sample size) and a p-value;
+candidates are ranked by predicted ΔBIC (p-values underflow) and flagged only when ΔBIC > ``FLAG_DBIC``
+and the Holm-adjusted p < ``FLAG_P``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import stats
+
+from forensics._shared.errors import InputError
+from forensics.check.classes import CLASSES, STK
+from forensics.check.evidence import Evidence
+from forensics.check.fit import FittedModel
+from forensics.check.result import Candidate, ChannelTest
+from forensics.check.scoretests import score_growth, score_pixel, score_spatial, score_variance
+from forensics.check.signatures import Signature, SignatureContext
+from forensics.check.pixels import PixelData
+from forensics.sensor.model import Effect, make_effect
+
+#: Flagging rule: predicted ΔBIC above this and Holm-adjusted p below ``FLAG_P``.
+FLAG_DBIC = 10.0
+FLAG_P = 0.01
+
+
+def diagnose(ev: Evidence, fitted: FittedModel, candidates: list[str]) -> tuple[list[Candidate], list[str]]:
+    """Rank the candidates by predicted ΔBIC and flag the strongly supported ones.
+
+    Returns the candidates (best first) and notes on the candidates that could not be tested.
+    """
+    px = fitted.pixels
+    meas = ev.meas
+    keep = ev.usable & (px.classes != STK)
+    z = np.where(keep, fitted.projector.project((meas.mean_a - fitted.mu_a) * np.sqrt(px.weight)), 0.0)
+    n_obs = int(keep.sum())
+    context = SignatureContext(ev, fitted)
+    results = []
+    notes = []
+    have = {name: meas.field_values(name) for name in ("exposure_s", "iso", "temperature_c")}
+    for name in candidates:
+        effect = make_effect(name)
+        missing = [f for f in effect.fields if (f == "captured" and (not meas.has_time or len(ev.times) < 3))
+                   or (f in have and not have[f])]
+        if missing:
+            notes.append(f"{name} not tested: the data lack {', '.join(missing)}"
+                         + (" (at least 3 epochs)" if "captured" in missing else ""))
+            continue
+        try:
+            sigs = effect.signature(context)
+        except InputError as exc:
+            notes.append(f"{name} not tested: {exc}")
+            continue
+        tests = []
+        tests += score_pixel(ev, fitted, [s for s in sigs if s.channel == "pixel"], z, n_obs)
+        tests += score_variance(ev, fitted, [s for s in sigs if s.channel == "variance"])
+        tests += score_growth(ev, fitted, [s for s in sigs if s.channel == "growth"])
+        tests += score_spatial(ev, fitted, [s for s in sigs if s.channel == "spatial"])
+        results.append(_candidate(effect, name, tests, n_obs, _where(ev.usable, px, sigs)))
+    holm(results)
+    results.sort(key=lambda c: -c.delta_bic)
+    return results, notes
+
+
+def _candidate(effect: Effect, name: str, tests: list[ChannelTest], n_obs: int, where: str) -> Candidate:
+    """One candidate's evidence from its channel tests: predicted ΔBIC and raw p-value."""
+    lm = float(sum(t.lm for t in tests))
+    df = int(sum(t.df for t in tests))
+    q = effect.n_params()
+    if tests and df > 0:
+        main = max(tests, key=lambda t: t.lm)
+        dbic = lm - q * math.log(max(main.n, 2))
+        p_raw = float(stats.chi2.sf(lm, df))
+        if len(tests) == 1 and tests[0].boundary:
+            p_raw *= 0.5
+    else:
+        dbic, p_raw = -q * math.log(max(n_obs, 2)), 1.0
+    absorbed = bool(tests) and all(t.absorbed and t.channel == "pixel" for t in tests)
+    evidence = "; ".join(t.detail for t in sorted(tests, key=lambda t: -t.lm)) or "no signature in these data"
+    if where:
+        evidence = f"{where}; {evidence}"
+    return Candidate(name, float(dbic), p_raw, False, lm, df, p_raw, q, tests, evidence, absorbed)
+
+
+def holm(results: list[Candidate]) -> None:
+    """Holm-adjusted p-values and the flags, set on ``results`` (the candidates being assembled)."""
+    order = sorted(range(len(results)), key=lambda i: results[i].p_raw)
+    m = len(results)
+    running = 0.0
+    for rank, i in enumerate(order):
+        adj = min(1.0, (m - rank) * results[i].p_raw)
+        running = max(running, adj)
+        results[i].p = running
+        results[i].flagged = results[i].delta_bic > FLAG_DBIC and results[i].p < FLAG_P
+
+
+def _where(usable: np.ndarray, px: PixelData, sigs: list[Signature]) -> str:
+    """Which pixel classes a pixel signature acts on."""
+    mass = np.zeros(3)
+    for s in sigs:
+        if s.channel != "pixel":
+            continue
+        x2 = np.where(usable, s.x**2 * px.weight, 0.0)
+        for k in range(3):
+            mass[k] += float(np.sum(x2[px.classes == k]))
+    if mass.sum() <= 0:
+        return ""
+    share = mass / mass.sum()
+    names = [f"{CLASSES[k]} {share[k]:.0%}" for k in range(3) if share[k] >= 0.01]
+    return "acts on " + ", ".join(names) + " pixels"

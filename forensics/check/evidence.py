@@ -1,0 +1,108 @@
+"""The evidence a model is fitted to: measurements, detected defects, pixel data and the forward models.
+
+:class:`Evidence` is built once per dataset and does not change while models are fitted to it.  It is
+made of cohesive parts:
+
+* :attr:`Evidence.meas` — the per-condition statistics (:mod:`forensics.check.measurements`);
+* :attr:`Evidence.defects` — defect counts and sites for the growth and spatial channels, and the arrival
+  model's predictions (:class:`~forensics.check.arrivals.DefectCounts`);
+* :meth:`Evidence.pixels` — per catalogue of pixel classes, the pixel and variance channels' data
+  (:class:`~forensics.check.pixels.PixelData`);
+* :attr:`Evidence.predictor` — the pixel channel's forward model (:class:`~forensics.check.prediction.Predictor`);
+* :attr:`Evidence.streams` — the Monte-Carlo streams (:class:`~forensics.check.streams.Streams`).
+
+It satisfies :class:`forensics.sensor.evidence.Evidence`, the protocol effects' own estimators use.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from forensics._shared.rng import RngLike
+from forensics.check.arrivals import DefectCounts
+from forensics.check.detection import detect_defects
+from forensics.check.measurements import Measurements
+from forensics.check.pixels import PixelData, pixel_data
+from forensics.check.prediction import Predictor
+from forensics.check.streams import Streams
+from forensics.sensor.catalogue import DefectCatalogue
+from forensics.sensor.model import Device
+
+#: z of the look-back that dates the pixel classes' onsets.
+CLASS_LOOK_BACK_Z = 3.0
+
+
+class EffectQuestions:
+    """The answers effects may ask for (:class:`forensics.sensor.evidence.Evidence`), from :attr:`defects`."""
+
+    defects: DefectCounts
+    shape: tuple[int, int]
+
+    def amplitude_max(self, kind: int, default: float) -> float:
+        return self.defects.amplitude_max(kind, default)
+
+    def detect_fraction(self, kind: int, amplitude: float) -> float:
+        return self.defects.detect_fraction(kind, amplitude)
+
+    def arrival_rate(self, kind: int) -> float:
+        return self.defects.arrival_rate(kind)
+
+    def site_intensity(self) -> float:
+        return self.defects.site_intensity()
+
+    def cluster_excess(self) -> tuple[float, float]:
+        return self.defects.cluster_excess()
+
+
+class Evidence(EffectQuestions):
+    """Measurements reduced for checking: detected defects, pixel data per catalogue, forward models."""
+
+    def __init__(self, meas: Measurements, rng: RngLike = 0, n_sim: int = 199):
+        self.meas = meas
+        self.streams = Streams(rng, n_sim)
+        self.shape = meas.shape
+        self.window = meas.window
+        #: bit depth of the fitted model: effects that scale with full scale (a response curve) must see the data's
+        self.bit_depth = int(np.clip(round(math.log2(meas.full_scale + 1)), 1, 16))
+        self.times = times = meas.epoch_times
+        self.notes: list[str] = []
+        # --- detection: classes from every frame of an epoch; counts from the conditions every epoch has
+        self.by_epoch_all = [[g.index for g in meas.groups if g.epoch == e] for e in range(len(times))]
+        self.initial_catalogue = detect_defects(meas, self.by_epoch_all, common_threshold=False,
+                                                look_back_z=CLASS_LOOK_BACK_Z).catalogue
+        conditions = [{g.condition for g in meas.groups if g.epoch == e} for e in range(len(times))]
+        common = set.intersection(*conditions) if conditions else set()
+        if not common:
+            common = set().union(*conditions)
+            if len(times) > 1:
+                self.notes.append("no condition is measured at every epoch: defect counts use every frame "
+                                  "(detection sensitivity may differ between epochs)")
+        self.reference_conditions = sorted(common, key=str)
+        by_epoch_ref = [[g.index for g in meas.groups if g.epoch == e and g.condition in common]
+                        for e in range(len(times))]
+        self.defects = DefectCounts(meas, detect_defects(meas, by_epoch_ref, common_threshold=True), self.bit_depth)
+        # --- pixel channel
+        self.rep = meas.repeated
+        self.rgroups = [meas.groups[g] for g in self.rep]
+        fs = meas.full_scale
+        self.censored = np.stack([(meas.lo[g] <= 0) | (meas.hi[g] >= fs) for g in self.rep])
+        self.usable = meas.interior[None] & ~self.censored
+        self.predictor = Predictor(meas, self.rgroups)
+        self._initial_pixels: PixelData | None = None
+
+    # ------------------------------------------------------------------ pixel data
+    def pixels(self, catalogue: DefectCatalogue | None = None) -> PixelData:
+        """Pixel data for the classes of ``catalogue`` (default: the defects detected from the data alone)."""
+        if catalogue is None or catalogue is self.initial_catalogue:
+            if self._initial_pixels is None:
+                self._initial_pixels = pixel_data(self.meas, self.rgroups, self.times, self.usable,
+                                                  self.initial_catalogue)
+            return self._initial_pixels
+        return pixel_data(self.meas, self.rgroups, self.times, self.usable, catalogue)
+
+    def redetect(self, device: Device) -> DefectCatalogue:
+        """Detect the pixel classes again against the model's prediction for defect-free pixels, so that fixed
+        patterns the model now explains (a per-pixel gain, column offsets) no longer raise the threshold."""
+        return detect_defects(self.meas, self.by_epoch_all, common_threshold=False, look_back_z=CLASS_LOOK_BACK_Z,
+                              reference=self.predictor.reference(device)).catalogue

@@ -1,0 +1,287 @@
+"""Fitting a model to the evidence: arrival effects on the counts, pixel effects on the first half of the
+repeats, noise effects on the binned variances.
+
+A fit never changes the effects it is given: it returns a :class:`FittedModel` carrying new effect objects
+(with the fitted values) and its own device (with the fitted fixed patterns).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import optimize
+
+from forensics.check.arrivals import DefectCounts
+from forensics.check.classes import NORMAL
+from forensics.check.evidence import Evidence
+from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
+from forensics.check.pixelfit import fit_pixels
+from forensics.check.pixels import PixelData, VarianceBins
+from forensics.check.prediction import predicted_variance
+from forensics.check.projection import PixelProjector
+from forensics.check.measurements import Group
+from forensics.check.result import ParamEstimate, PatternEstimate
+from forensics.check.streams import NULL_SIMULATIONS
+from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
+from forensics.sensor.model import Device, Effect, SensorModel, Stage
+
+
+@dataclass(frozen=True)
+class FittedModel:
+    """A model fitted to the evidence: the fitted effects, the device (fitted defects and patterns), the pixel
+    data it was fitted with, and the fit's by-products."""
+
+    device: Device
+    effects: list[Effect]
+    pixels: PixelData
+    mu_a: np.ndarray
+    mu_b: np.ndarray
+    nuisance: list[np.ndarray]
+    projector: PixelProjector
+    params: list[ParamEstimate]
+    patterns: list[PatternEstimate]
+    expected: dict[int, np.ndarray]
+    arrival_free: list[tuple[str, str]]
+    growth_jac: np.ndarray | None
+    variance_pred: np.ndarray
+    variance_jac: np.ndarray | None
+    spatial_null: dict[str, Any] | None
+    sims: dict[str, Any] = field(default_factory=dict)
+
+    def arrival_effects(self) -> list[Effect]:
+        return [e for e in self.effects if e.stage == Stage.ARRIVAL]
+
+    def noise_effects(self) -> list[Effect]:
+        return [e for e in self.effects if e.stage == Stage.NOISE]
+
+
+def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 12) -> FittedModel:
+    """Fit ``effects`` to the evidence (the objects given are left unchanged).
+
+    Pixel classes come from defect detection; when the model has fixed patterns on normal pixels, detection is
+    repeated against the fitted model's prediction for defect-free pixels and the model refitted once.
+    """
+    pixels = ev.pixels()
+    fitted = _fit_once(ev, pixels, effects, max_cycles)
+    device = fitted.device
+    covers_normal = any(bool(np.any((p.blocks >= 0) & (pixels.classes[-1] == NORMAL)))
+                        for e in device.model.effects if is_pixel(e) and e.null_values() for p in e.patterns(device))
+    if covers_normal:
+        catalogue = ev.redetect(device)
+        if not same_catalogue(catalogue, pixels.catalogue):
+            fitted = _fit_once(ev, ev.pixels(catalogue), fitted.effects, max_cycles)
+    return fitted
+
+
+def same_catalogue(a: DefectCatalogue, b: DefectCatalogue | None) -> bool:
+    if b is None or len(a) != len(b):
+        return False
+    ka = sorted(zip(a.y.tolist(), a.x.tolist(), a.kind.tolist(), a.onset.tolist()))
+    kb = sorted(zip(b.y.tolist(), b.x.tolist(), b.kind.tolist(), b.onset.tolist()))
+    return ka == kb
+
+
+def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cycles: int) -> FittedModel:
+    effects = list(SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects),
+                               t0=float(ev.times[0])).effects)  # in stage order
+    params: list[ParamEstimate] = []
+    # ---------------------------------------------------------------- arrivals
+    a_idx = [i for i, e in enumerate(effects) if e.stage == Stage.ARRIVAL]
+    arrivals, expected, arrival_free, growth_jac = fit_arrivals(ev, ev.defects, [effects[i] for i in a_idx], params)
+    for i, e in zip(a_idx, arrivals):
+        effects[i] = e
+    # ---------------------------------------------------------------- pixel channel
+    device = Device(model=SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=effects, t0=float(ev.times[0])),
+                    times=tuple(float(t) for t in ev.times),
+                    catalogue=pixels.catalogue.select(np.arange(len(pixels.catalogue))))
+    rng = ev.streams.patterns()
+    for e in effects:
+        if e.stage != Stage.ARRIVAL:
+            e.realize(device, rng)
+    for e in effects:
+        if is_pixel(e) and e.null_values():
+            for pat in e.patterns(device):
+                pat.values[...] = 0.0
+    p_idx = [i for i, e in enumerate(effects) if is_pixel(e)]
+    for i in p_idx:
+        effects[i] = bespoke_fit(effects[i], ev)
+    pix = fit_pixels(ev, pixels, device, effects, p_idx, params, max_cycles)
+    effects = pix.effects
+    projector = PixelProjector([c * np.sqrt(pixels.weight) for c in pix.nuisance])
+    effects, patterns = pattern_summaries(on_device(device, effects), effects, p_idx, pix.local, pix.local_var)
+    # ---------------------------------------------------------------- variance
+    n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
+    for i in n_idx:
+        effects[i] = bespoke_fit(effects[i], ev)
+    noise, vpred, vjac = fit_variance(pixels.bins, ev.rgroups, [effects[i] for i in n_idx], device, params)
+    for i, e in zip(n_idx, noise):
+        effects[i] = e
+    device = on_device(device, effects)
+    mu_b = ev.predictor.predict(device, pixels, "b")
+    sims, spatial_null = {}, None
+    if arrivals and len(ev.times) >= 2:
+        sims, spatial_null = ev.defects.simulate_null(arrivals, expected, ev.streams.stream(NULL_SIMULATIONS),
+                                                      ev.streams.n_sim)
+    return FittedModel(device, effects, pixels, pix.mu_a, mu_b, pix.nuisance, projector, params, patterns, expected,
+                       arrival_free, growth_jac, vpred, vjac, spatial_null, sims)
+
+
+def _log_scale(effect: Effect, name: str) -> bool:
+    """Positive, unbounded parameters are optimised on a log scale."""
+    lo, hi = effect.bounds(name)
+    return lo >= 0 and bool(np.isinf(hi))
+
+
+def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect], params: list[ParamEstimate]):
+    """Fit the arrival effects to the count increments (Poisson likelihood; bespoke fits first).
+
+    Returns (fitted arrival effects, expected counts, the free parameters as (effect, name), the Jacobian of the
+    expected increments by the free parameters) and appends the estimates to ``params``.
+    """
+    times = counts.times
+    if not arrivals:
+        return [], {PARTIAL: np.zeros(len(times)), STUCK: np.zeros(len(times))}, [], None
+    arr = list(arrivals)
+    free = [(j, n) for j, e in enumerate(arr) for n in e.free_params()]
+
+    def unpack(effs: list[Effect], theta: np.ndarray) -> list[Effect]:
+        for (j, n), t in zip(free, theta):
+            lo, hi = effs[j].bounds(n)
+            effs = with_param(effs, j, n, float(np.exp(t)) if _log_scale(effs[j], n) else float(np.clip(t, lo, hi)))
+        return effs
+
+    def increments(effs: list[Effect]) -> tuple[np.ndarray, np.ndarray]:
+        return counts.increments(counts.expected_counts(effs))
+
+    for _ in range(3):
+        arr = [bespoke_fit(e, evidence) for e in arr]
+        if not free or len(times) < 2:
+            break
+        obs, exp = increments(arr)
+        # starting values: scale rates so the total matches the observed count
+        total_obs, exp_total = obs.sum(), exp.sum()
+        if exp_total > 0 and total_obs > 0:
+            for j, n in free:
+                if _log_scale(arr[j], n) and arr[j].null_values().get(n) is None:
+                    arr = with_param(arr, j, n, getattr(arr[j], n) * total_obs / exp_total)
+
+        def nll(theta: np.ndarray, start: list[Effect] = arr) -> float:
+            o, m = increments(unpack(start, theta))
+            m = np.maximum(m, 1e-12)
+            return float(np.sum(m - o * np.log(m)))
+
+        x0 = np.array([np.log(max(getattr(arr[j], n), 1e-9)) if _log_scale(arr[j], n) else getattr(arr[j], n)
+                       for j, n in free], float)
+        bounds = []
+        for j, n in free:
+            lo, hi = arr[j].bounds(n)
+            # positive parameters are optimised on a log scale, kept within e^-25 … e^25
+            bounds.append((-25.0, 25.0) if _log_scale(arr[j], n) else (lo if np.isfinite(lo) else None,
+                                                                       hi if np.isfinite(hi) else None))
+        best = optimize.minimize(nll, x0, method="L-BFGS-B", bounds=bounds)
+        arr = unpack(arr, best.x)
+    expected = counts.expected_counts(arr)
+    jac = None
+    if free:
+        base = counts.increments(expected)[1]
+        cols = []
+        for j, n in free:
+            v = getattr(arr[j], n)
+            d = 1e-4 * (1 + abs(v))
+            cols.append((increments(with_param(arr, j, n, v + d))[1] - base) / d)
+        jac = np.array(cols)
+        m = np.maximum(base, 1e-9)
+        cov = np.linalg.pinv((jac / m) @ jac.T)
+        for i, (j, n) in enumerate(free):
+            params.append(ParamEstimate(arr[j].key, n, float(getattr(arr[j], n)), float(np.sqrt(max(cov[i, i], 0))),
+                                        unit(arr[j], n)))
+    for e in arr:
+        for n in e.self_fitted:
+            params.append(ParamEstimate(e.key, n, float(getattr(e, n)), None, unit(e, n)))
+    return arr, expected, [(arr[j].key, n) for j, n in free], jac
+
+
+def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], local: list,
+                      local_var: np.ndarray | None) -> tuple[list[Effect], list[PatternEstimate]]:
+    """Each fixed pattern's size (rms of its fitted values less their estimation noise), and the effects with
+    the parameters that summarise their patterns (``Pattern.hyper``) set from it."""
+    var_by_id = {}
+    if local_var is not None:
+        for (i, p), v in zip(local, local_var):
+            var_by_id[p.name, effects[i].key] = (p.blocks, v)
+    out = []
+    for i in p_idx:
+        e = effects[i]
+        for p in e.patterns(device):
+            used = np.unique(p.blocks[p.blocks >= 0])
+            if used.size == 0:
+                out.append(PatternEstimate(e.key, p.name, 0, 0.0, 0.0, p.hyper, None))
+                continue
+            vals = p.values[used].astype(float)
+            ms = float(np.mean(vals**2))
+            item = var_by_id.get((p.name, e.key))
+            noise = 0.0
+            if item is not None:
+                m = item[0] >= 0
+                noise = float(np.nanmean(item[1][m])) if m.any() else 0.0
+            rms = math.sqrt(max(ms - noise, 0.0))
+            hyper_value = None
+            if p.hyper:
+                hyper_value = {"rms": rms, "max": float(vals.max()), "mean": float(vals.mean())}[p.summary]
+                effects = with_param(effects, i, p.hyper, hyper_value)
+            out.append(PatternEstimate(e.key, p.name, int(used.size), rms, float(np.max(np.abs(vals))), p.hyper,
+                                       hyper_value))
+    return effects, out
+
+
+def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effect], device: Device,
+                 params: list[ParamEstimate]) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
+    """Fit the noise effects to the log binned variances (weighted Gauss–Newton with step halving).
+
+    Returns (fitted noise effects, predicted variance per bin, Jacobian of the log prediction) and appends the
+    estimates to ``params``.
+    """
+    free = [(j, n) for j, e in enumerate(noise) for n in e.free_params()]
+    y = np.log(bins.observed)
+    w = bins.df / 2.0
+    jac = None
+
+    def log_pred(effs: list[Effect]) -> np.ndarray:
+        return np.log(predicted_variance(bins, rgroups, effs, device))
+
+    def jacobian(effs: list[Effect], pred: np.ndarray) -> np.ndarray:
+        cols = []
+        for j, n in free:
+            v = getattr(effs[j], n)
+            d = 1e-4 * (1 + abs(v))
+            cols.append((log_pred(with_param(effs, j, n, v + d)) - pred) / d)
+        return np.array(cols)
+
+    if free and len(y):
+        for _ in range(30):
+            pred = log_pred(noise)
+            r = y - pred
+            J = jacobian(noise, pred)
+            step = np.linalg.lstsq((J * w) @ J.T, (J * w) @ r, rcond=None)[0]
+            old = [getattr(noise[j], n) for j, n in free]
+            chi_old = float(np.sum(w * r * r))
+            start = noise
+            for _ in range(20):
+                trial = start
+                for (j, n), v, s in zip(free, old, step):
+                    trial = with_clipped_param(trial, j, n, v + s)
+                if float(np.sum(w * (y - log_pred(trial)) ** 2)) <= chi_old:
+                    noise = trial
+                    break
+                step = step / 2
+            if np.all(np.abs(step) <= 1e-7 * (1 + np.abs(old))):
+                break
+        jac = jacobian(noise, log_pred(noise))
+        cov = np.linalg.pinv((jac * w) @ jac.T)
+        for i, (j, n) in enumerate(free):
+            params.append(ParamEstimate(noise[j].key, n, float(getattr(noise[j], n)), float(np.sqrt(max(cov[i, i], 0.0))),
+                                        unit(noise[j], n)))
+    return noise, predicted_variance(bins, rgroups, noise, device), jac

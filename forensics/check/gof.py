@@ -1,0 +1,212 @@
+"""Goodness of fit: the held-out error per pixel class and each channel's test of the fitted model.
+
+Each function takes the evidence and a :class:`~forensics.check.fit.FittedModel`, appends its rows to the
+table of checks and returns its numbers; nothing is refitted here.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+import forensics.stats.spatial as sp
+from forensics.check.classes import CLASSES, PART, QUANT_VAR, STK
+from forensics.check.evidence import Evidence
+from forensics.check.fit import FittedModel
+from forensics.check.result import CheckRow
+from forensics.check.scene import KERNEL_VAR
+from forensics.sensor.catalogue import PARTIAL
+from forensics.stats.counts import laplace_trend_z, poisson_deviance
+
+
+def class_errors(ev: Evidence, fitted: FittedModel) -> dict[str, float | None]:
+    """Held-out error per class: √(Σ residual² / Σ noise floor) on the second half of the repeats."""
+    px = fitted.pixels
+    meas = ev.meas
+    r = meas.mean_b - fitted.mu_b
+    nb = meas.n_b[:, None, None].astype(float)
+    scene_term = np.where(px.classes == STK, 0.0, KERNEL_VAR)
+    floor = px.raw_floor * (1.0 + scene_term) / nb
+    out: dict[str, float | None] = {}
+    r2 = r * r
+    for k, name in enumerate(CLASSES):
+        m = ev.usable & (px.classes == k)
+        if not m.any():
+            out[name] = None
+            continue
+        num = float(r2[m].sum())
+        quant = float(np.sum(m.sum(axis=(1, 2)) * QUANT_VAR / meas.n_b))
+        den = max(float(floor[m].sum()), quant)
+        out[name] = math.sqrt(num / den)
+    return out
+
+
+def pixel_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float, np.ndarray]:
+    """Goodness of fit of the pixel channel: binned residual means and per-pixel consistency (in-sample)."""
+    px = fitted.pixels
+    meas = ev.meas
+    sw = np.sqrt(px.weight)
+    z = fitted.projector.project((meas.mean_a - fitted.mu_a) * sw)
+    lev = fitted.projector.leverage()
+    keep = ev.usable & (px.classes != STK)
+    var1 = np.where(keep, 1.0 - (lev if lev is not None else 0.0), 0.0)
+    # (a) mean residual of the defect classes per condition (normal pixels' smooth misfit is absorbed by the
+    # scene estimate by construction; their pixel-to-pixel misfit is test (b))
+    chi = 0.0
+    nb = 0
+    for r in range(len(ev.rep)):
+        for k in (PART,):
+            m = keep[r] & (px.classes[r] == k)
+            if m.sum() < 3:
+                continue
+            v = float(var1[r][m].sum())
+            if v <= 0.5:
+                continue
+            chi += float(z[r][m].sum()) ** 2 / v
+            nb += 1
+    p_a = float(stats.chi2.sf(chi, nb)) if nb else 1.0
+    if nb:
+        checks.append(CheckRow("pixel: mean residual of partially stuck pixels per condition, χ²/df", chi / nb, 1.0,
+                               (chi - nb) / math.sqrt(2 * nb)))
+    # (b) per-pixel consistency: component along the constant, against the within-pixel scatter
+    ones = fitted.projector.project(np.where(keep, sw, 0.0))
+    norm = np.sqrt(np.sum(ones**2, axis=0))
+    zk = np.where(keep, z, 0.0)
+    u = np.where(norm > 0, np.sum(ones * zk, axis=0) / np.where(norm > 0, norm, 1), 0.0)
+    npix_obs = keep.sum(axis=0)
+    k_local = np.zeros(ev.shape)
+    for c in fitted.nuisance:
+        k_local += (np.abs(c).sum(axis=0) > 0)
+    df_within = np.maximum(npix_obs - k_local - 1, 0)
+    ss_within = np.sum(zk**2, axis=0) - u**2
+    use = (norm > 0) & (df_within > 0)
+    n_pix = int(use.sum())
+    consistency = np.where(use, u, np.nan)
+    if n_pix > 10:
+        between = float(np.mean(u[use] ** 2))
+        within = float(ss_within[use].sum() / df_within[use].sum())
+        ratio = between / max(within, 1e-12)
+        dfw = float(df_within[use].sum())
+        p_b = float(stats.f.sf(ratio, n_pix, dfw))
+        checks.append(CheckRow("pixel: per-pixel consistency (between / within)", ratio, 1.0,
+                               (ratio - 1) / math.sqrt(2 / n_pix + 2 / dfw)))
+    else:
+        p_b = 1.0
+    return min(1.0, 2 * min(p_a, p_b)), consistency
+
+
+def covariate_checks(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> dict[str, dict[str, Any]]:
+    """Held-out residuals against every covariate: binned means per class, and a weighted slope test."""
+    px = fitted.pixels
+    meas = ev.meas
+    r = meas.mean_b - fitted.mu_b
+    nb = meas.n_b[:, None, None].astype(float)
+    var_b = px.floor * (1.0 + np.where(px.classes == STK, 0.0, KERNEL_VAR)) / nb
+    z = r / np.sqrt(var_b)
+    covs = {
+        "scene level (DN)": px.scene_a,  # the other half's estimate: binning on its own would bias the residual
+        "exposure_s": np.array([g.exposure_s if g.exposure_s is not None else np.nan for g in ev.rgroups]),
+        "iso": np.array([g.iso if g.iso is not None else np.nan for g in ev.rgroups]),
+        "temperature_c": np.array([g.temperature_c if g.temperature_c is not None else np.nan for g in ev.rgroups]),
+        "epoch (year)": np.array([g.time for g in ev.rgroups]),
+    }
+    out: dict[str, dict[str, Any]] = {}
+    for cname, cov in covs.items():
+        c = cov if cov.ndim == 3 else np.broadcast_to(cov[:, None, None], z.shape)
+        entry: dict[str, Any] = {}
+        for k, klass in enumerate(CLASSES[:2]):
+            m = ev.usable & (px.classes == k) & np.isfinite(c)
+            if m.sum() < 10:
+                continue
+            cv, zv, rv = c[m], z[m], r[m]
+            if np.ptp(cv) <= 0:
+                continue
+            uniq = np.unique(cv)
+            if uniq.size > 12:
+                edges = np.quantile(cv, np.linspace(0, 1, 9))
+                idx = np.clip(np.searchsorted(edges, cv, side="right") - 1, 0, 7)
+                centres = np.array([cv[idx == i].mean() if np.any(idx == i) else np.nan for i in range(8)])
+            else:
+                idx = np.searchsorted(uniq, cv)
+                centres = uniq
+            nbin = len(centres)
+            mean_r = np.array([rv[idx == i].mean() if np.any(idx == i) else np.nan for i in range(nbin)])
+            se_r = np.array([rv[idx == i].std() / math.sqrt(max(np.sum(idx == i), 1)) if np.any(idx == i) else np.nan
+                             for i in range(nbin)])
+            entry[klass] = {"x": centres, "mean": mean_r, "se": se_r}
+            cc = (cv - cv.mean()) / cv.std()
+            slope_z = float(np.sum(cc * zv) / math.sqrt(np.sum(cc * cc)))
+            slope = float(np.sum((cv - cv.mean()) * rv) / np.sum((cv - cv.mean()) ** 2))
+            checks.append(CheckRow(f"pixel: {klass} residual slope vs {cname}", slope, 0.0, slope_z))
+        out[cname] = entry
+    return out
+
+
+def variance_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float | None, float | None]:
+    px = fitted.pixels
+    if not len(px.bins.observed):
+        return None, None
+    e = np.log(px.bins.observed) - np.log(fitted.variance_pred)
+    w = px.bins.df / 2.0
+    q = 0 if fitted.variance_jac is None else fitted.variance_jac.shape[0]
+    chi = float(np.sum(w * e * e))
+    df = max(len(e) - q, 1)
+    checks.append(CheckRow("variance: mean ln(observed/predicted)", float(np.average(e, weights=w)), 0.0,
+                           float(np.sum(w * e) / math.sqrt(np.sum(w)))))
+    lv = px.bins.level
+    if np.ptp(lv) > 0:
+        c = (lv - np.average(lv, weights=w))
+        slope_z = float(np.sum(w * c * e) / math.sqrt(np.sum(w * c * c)))
+        checks.append(CheckRow("variance: slope of ln(observed/predicted) vs level (per 1000 DN)",
+                               float(np.sum(w * c * e) / np.sum(w * c * c) * 1000), 0.0, slope_z))
+    checks.append(CheckRow("variance: χ²/df of ln variance", chi / df, 1.0, (chi - df) / math.sqrt(2 * df)))
+    return float(np.sqrt(np.mean(e * e))), float(stats.chi2.sf(chi, df))
+
+
+def growth_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float | None, float | None]:
+    if len(ev.times) < 3 or not fitted.arrival_effects():
+        return None, None
+    obs, exp = ev.defects.increments(fitted.expected)
+    used = (exp > 1e-9) | (obs > 0)
+    n_free = len(fitted.arrival_free)
+    df = max(int(used.sum()) - n_free, 1)
+    dev = poisson_deviance(obs[used], exp[used])
+    sims = fitted.sims.get("deviance")
+    scale = float(np.mean(sims)) / df if sims is not None and len(sims) else 1.0
+    scale = max(scale, 1e-6)
+    p = float(stats.chi2.sf(dev / scale, df))
+    pearson = float(np.sum((obs[used] - exp[used]) ** 2 / np.maximum(exp[used], 1e-9)))
+    pred_disp = float(np.mean(fitted.sims["pearson"])) / df if sims is not None else 1.0
+    checks.append(CheckRow("growth: Poisson deviance / df", dev / df, scale, (dev / scale - df) / math.sqrt(2 * df)))
+    checks.append(CheckRow("growth: dispersion index (Pearson χ²/df)", pearson / df, pred_disp,
+                           (pearson / pred_disp - df) / math.sqrt(2 * df) if pred_disp > 0 else None))
+    u = laplace_trend_z(np.diff(ev.defects.counts[PARTIAL]), ev.times)
+    if u is not None:
+        checks.append(CheckRow("growth: Laplace trend z (partially stuck arrivals)", u, 0.0, u))
+    return dev / df, p
+
+
+def spatial_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float | None, dict[str, Any]]:
+    info: dict[str, Any] = {}
+    if len(ev.defects.sites) < 10:
+        return None, info
+    l_obs = ev.defects.ripley_l(ev.defects.sites)
+    ce = sp.clark_evans(ev.defects.sites[:, 1], ev.defects.sites[:, 0], ev.window)
+    info.update({"radii": sp.DEFAULT_RADII, "observed": l_obs})
+    null = fitted.spatial_null
+    if null is None:
+        checks.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
+        return None, info
+    m0, s0, sims = null["mean"], null["sd"], null["sims"]
+    dev_obs = float(np.max(np.abs(l_obs - m0) / s0))
+    dev_sim = np.max(np.abs(sims - m0) / s0, axis=1)
+    p = float((1 + np.sum(dev_sim >= dev_obs)) / (1 + len(dev_sim)))
+    info.update({"mean": m0, "lo": np.quantile(sims, 0.025, axis=0), "hi": np.quantile(sims, 0.975, axis=0),
+                 "min": sims.min(0), "max": sims.max(0)})
+    checks.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
+    j = int(np.argmax(np.abs(l_obs - m0) / s0))
+    checks.append(CheckRow(f"spatial: Ripley L at r = {sp.DEFAULT_RADII[j]:g} px (largest deviation)",
+                           float(l_obs[j]), float(m0[j]), float((l_obs[j] - m0[j]) / s0[j])))
+    return p, info

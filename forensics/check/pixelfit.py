@@ -1,0 +1,152 @@
+"""The pixel channel's fit: fixed patterns and global parameters on the first half of the repeats."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from forensics.check.evidence import Evidence
+from forensics.check.params import on_device, unit, with_clipped_param, with_param
+from forensics.check.pixels import PixelData
+from forensics.check.projection import PixelProjector, solve_local
+from forensics.check.result import ParamEstimate
+from forensics.sensor.model import Device, Effect, Pattern
+
+
+@dataclass
+class PixelFit:
+    """The pixel channel's fitted effects and by-products."""
+
+    effects: list[Effect]
+    mu_a: np.ndarray
+    nuisance: list[np.ndarray]  #: derivatives of the prediction along the pixel-local patterns
+    local: list[tuple[int, Pattern]]  #: (effect index, pattern) of the pixel-local patterns
+    local_var: np.ndarray | None  #: variances of their fitted values
+
+
+def pattern_derivative(predict, device: Device, pat: Pattern, base: np.ndarray) -> np.ndarray:
+    """∂μ/∂value of each pixel's own block, all blocks perturbed at once (zero outside the blocks: a block's
+    influence on other pixels, e.g. through their scene estimate, is not a parameter of theirs)."""
+    used = np.unique(pat.blocks[pat.blocks >= 0])
+    if used.size == 0:
+        return np.zeros_like(base)
+    delta = 1e-3 * (1.0 + float(np.max(np.abs(pat.values[used]))))
+    pat.values[used] += delta
+    x = (predict(device, clip=False) - base) / delta
+    pat.values[used] -= delta
+    return x * (pat.blocks >= 0)[None]
+
+
+def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequence[Effect], pixel_idx: list[int],
+               params: list[ParamEstimate], max_cycles: int) -> PixelFit:
+    """Fit the pixel effects ``effects[pixel_idx]`` to the first half of the repeats.
+
+    Cycles of: pixel-local patterns jointly per pixel; other patterns block by block; global parameters by
+    profiled Gauss–Newton (the pixel-local patterns projected out) with step halving — until χ² settles.
+    The patterns are fitted in place in ``device``'s state (the fit's own device); parameters make new
+    effects.  Appends the global parameters' estimates to ``params``.
+    """
+    y = ev.meas.mean_a
+    w = pixels.weight
+    fs = ev.meas.full_scale
+    effects = list(effects)
+
+    def predict(dev: Device, clip: bool = True) -> np.ndarray:
+        return ev.predictor.predict(dev, pixels, "a", clip)
+
+    def refit_local(dev: Device, X_local: list[np.ndarray], mu: np.ndarray) -> np.ndarray:
+        coef, _ = solve_local(w, X_local, y - mu)
+        for (_, p), c in zip(local, coef):
+            m = p.blocks >= 0
+            p.values[p.blocks[m]] += c[m]
+        return predict(dev)
+
+    dev = on_device(device, effects)
+    pats = [(i, p) for i in pixel_idx for p in effects[i].patterns(dev)]
+    local = [(i, p) for i, p in pats if p.pixel_local]
+    other = [(i, p) for i, p in pats if not p.pixel_local]
+    glob = [(i, n) for i in pixel_idx for n in effects[i].free_params()]
+    chi_prev = np.inf
+    X_local: list[np.ndarray] = []
+    local_var = None
+    H = None
+    for cycle in range(max_cycles):
+        raw = predict(dev, clip=False)  # derivatives ignore the clipping (clipped values are censored)
+        mu = np.clip(raw, 0.0, fs)
+        # -- pixel-local patterns, jointly per pixel
+        X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
+        if local:
+            mu = refit_local(dev, X_local, mu)
+        # -- other patterns, block by block
+        for _, p in other:
+            x = pattern_derivative(predict, dev, p, predict(dev, clip=False))
+            m = (p.blocks >= 0)[None] & (w > 0)
+            blk = np.broadcast_to(p.blocks[None], x.shape)[m]
+            num = np.bincount(blk, (x * w * (y - mu))[m], minlength=len(p.values))
+            den = np.bincount(blk, (x * x * w)[m], minlength=len(p.values))
+            p.values[...] += np.where(den > 0, num / np.where(den > 0, den, 1), 0.0)
+            mu = predict(dev)
+        # -- global parameters: profiled Gauss–Newton with step halving
+        if glob:
+            effects, H = _global_step(predict, refit_local, device, effects, glob, pats, local, X_local, y, w, mu)
+            dev = on_device(device, effects)
+        mu = predict(dev)
+        chi = float(np.sum(w * (y - mu) ** 2))
+        if np.isfinite(chi_prev) and abs(chi_prev - chi) <= 1e-6 * max(chi, 1.0) and cycle >= 1:
+            break
+        chi_prev = chi
+    raw = predict(dev, clip=False)
+    mu = np.clip(raw, 0.0, fs)
+    if local:
+        X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
+        _, local_var = solve_local(w, X_local, y - mu)
+    if glob:
+        cov = np.linalg.pinv(H)
+        for k, (i, n) in enumerate(glob):
+            params.append(ParamEstimate(effects[i].key, n, float(getattr(effects[i], n)),
+                                        float(np.sqrt(max(cov[k, k], 0.0))), unit(effects[i], n)))
+    return PixelFit(effects, mu, X_local, local, local_var)
+
+
+def _global_step(predict, refit_local, device: Device, effects: list[Effect], glob: list[tuple[int, str]],
+                 pats: list[tuple[int, Pattern]], local: list, X_local: list[np.ndarray], y: np.ndarray,
+                 w: np.ndarray, mu: np.ndarray) -> tuple[list[Effect], np.ndarray]:
+    """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
+    does not increase (at most 8 times; else the old values stay).  Returns the effects and the Gauss–Newton
+    matrix (for standard errors)."""
+    dev = on_device(device, effects)
+    r = y - mu
+    raw = predict(dev, clip=False)
+    proj = PixelProjector([c * np.sqrt(w) for c in X_local])
+    J = []
+    for i, n in glob:
+        v = getattr(effects[i], n)
+        d = 1e-3 * (1 + abs(v))
+        lo, hi = effects[i].bounds(n)
+        if v + d > hi:
+            d = -d
+        moved = on_device(device, with_param(effects, i, n, v + d))
+        J.append(proj.project((predict(moved, clip=False) - raw) / d * np.sqrt(w)))
+    zr = proj.project(r * np.sqrt(w))
+    H = np.array([[np.sum(a * b) for b in J] for a in J])
+    g = np.array([np.sum(a * zr) for a in J])
+    step = np.linalg.lstsq(H + 1e-9 * np.diag(np.diag(H) + 1e-30), g, rcond=None)[0]
+    old = [getattr(effects[i], n) for i, n in glob]
+    old_vals = [p.values.copy() for _, p in pats]
+    chi_old = float(np.sum(w * r * r))
+    for _ in range(8):
+        trial = effects
+        for (i, n), v, s in zip(glob, old, step):
+            trial = with_clipped_param(trial, i, n, v + s)
+        tdev = on_device(device, trial)
+        mu_new = predict(tdev)
+        if local:
+            mu_new = refit_local(tdev, X_local, mu_new)
+        chi_new = float(np.sum(w * (y - mu_new) ** 2))
+        if chi_new <= chi_old:
+            return trial, H
+        for (_, p), v in zip(pats, old_vals):
+            p.values[...] = v
+        step = step / 2
+    return effects, H

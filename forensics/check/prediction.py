@@ -1,0 +1,135 @@
+"""The forward models of the pixel and variance channels.
+
+Pixel channel: predicted mean output of every repeated condition.
+
+The scene estimate of each pixel is mapped to incident light through the inverse of the typical pixel's
+chain (tabulated once per parameter values and condition) and sent through the device's chain
+(:meth:`~forensics.sensor.model.Device.mean_signal`).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from forensics.check.classes import QUANT_VAR
+from forensics.check.measurements import Group, Measurements
+from forensics.check.pixels import PixelData, VarianceBins
+from forensics.sensor.catalogue import DefectCatalogue
+from forensics.sensor.model import Device, Effect, FrameContext, Stage
+
+
+def intact(device: Device) -> Device:
+    """The device without its defects (fixed patterns kept), sharing its state."""
+    return Device(model=device.model, times=device.times, catalogue=DefectCatalogue.empty(), state=device.state)
+
+
+def context(device: Device, g: Group) -> FrameContext:
+    return device.context(g.time, g.exposure_s, g.iso, g.temperature_c)
+
+
+class Predictor:
+    """Predicted pixel means for the measurements (caches the typical chain's inverse)."""
+
+    def __init__(self, meas: Measurements, rgroups: Sequence[Group]):
+        self.meas = meas
+        self.rgroups = list(rgroups)
+        self.shape = meas.shape
+        self._chain_cache: dict[Any, Any] = {}
+
+    def table(self, typical: Device, tctx: FrameContext) -> tuple[np.ndarray, np.ndarray] | None:
+        """The typical chain tabulated as (output, light), sorted; None where it is the identity."""
+        key = (tuple((e.key, tuple(sorted(e.params().items()))) for e in typical.model.effects
+                     if e.stage not in (Stage.ARRIVAL, Stage.NOISE)),
+               tctx.time, tctx.exposure_s, tctx.iso, tctx.temperature_c)
+        cache = self._chain_cache
+        if key not in cache:
+            if len(cache) > 4096:
+                cache.clear()
+            fs = self.meas.full_scale
+            h, w = self.shape
+            grid = np.linspace(-0.25 * fs, 2.0 * fs, h * w).reshape(h, w)
+            chain = typical.mean_signal(grid, tctx)
+            if np.max(np.abs(chain - grid)) < 1e-9 * fs:
+                cache[key] = None
+            else:
+                flat_c, flat_g = chain.ravel(), grid.ravel()
+                if np.any(np.diff(flat_c) <= 0):
+                    order = np.argsort(flat_c, kind="stable")
+                    flat_c, flat_g = flat_c[order], flat_g[order]
+                cache[key] = (flat_c, flat_g)
+        return cache[key]
+
+    def light(self, typical: Device, tctx: FrameContext, scene: np.ndarray) -> np.ndarray:
+        """Incident light whose typical-pixel output is ``scene`` (inverse of the typical chain)."""
+        table = self.table(typical, tctx)
+        return scene if table is None else np.interp(scene, table[0], table[1])
+
+    def reference(self, device: Device) -> np.ndarray:
+        """What a defect-free pixel of ``device`` reads in every condition (for re-detection against the model)."""
+        meas = self.meas
+        clean, typical = intact(device), device.typical()
+        ref = np.empty_like(meas.mean_all)
+        for g in meas.groups:
+            ref[g.index] = clean.mean_signal(self.light(typical, context(typical, g), meas.scene_all[g.index]),
+                                             context(clean, g))
+        return ref
+
+    def predict(self, device: Device, pixels: PixelData, half: str = "a", clip: bool = True) -> np.ndarray:
+        """Predicted mean output ``(R, H, W)`` of every repeated condition for the half's scene estimates.
+
+        Known defects entered the scene estimate through fill values; here they are replaced by the
+        defect's reading minus its modelled deviation from a typical pixel (what a typical pixel there
+        would have read, noise and fixed patterns included), so that the neighbours' prediction does not
+        depend on how the gap was filled.  (The deviation is the defect's: the pixel's fixed patterns,
+        which a normal pixel there would show too, stay in.)
+        """
+        scenes = pixels.scene_a if half == "a" else pixels.scene_b
+        fills = pixels.fill_a if half == "a" else pixels.fill_b
+        means = self.meas.mean_a if half == "a" else self.meas.mean_b
+        typical = device.typical()
+        clean = intact(device)
+        out = np.empty(scenes.shape)
+        h, w = self.shape
+        cache = pixels.light_cache
+        for r, g in enumerate(self.rgroups):
+            ctx = context(device, g)
+            table = self.table(typical, context(typical, g))
+            if table is None:
+                light = scenes[r]
+            else:  # the light of the fixed scene estimate depends only on the global parameters: cache it
+                key = (id(table[0]), half, r)
+                if key not in cache:
+                    if len(cache) > 6 * len(self.rgroups):
+                        cache.clear()
+                    cache[key] = (table[0], np.interp(scenes[r], table[0], table[1]))
+                light = cache[key][1]
+            mu = device.mean_signal(light, ctx)
+            if pixels.defect_mask[r].any():
+                deviation = mu - clean.mean_signal(light, context(clean, g))
+                src, dst, wts = pixels.refill_ops[g.epoch]
+                refill = (means[r] - deviation - fills[r]).ravel()[src]
+                correction = np.bincount(dst, wts * refill, minlength=h * w)
+                touched = np.flatnonzero(correction)
+                light = light.copy().ravel()
+                scene = scenes[r].ravel()[touched] + correction[touched]
+                light[touched] = scene if table is None else np.interp(scene, table[0], table[1])
+                mu = device.mean_signal(light.reshape(h, w), ctx)
+            out[r] = mu
+        if clip:
+            np.clip(out, 0.0, self.meas.full_scale, out=out)
+        return out
+
+
+def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effects: Sequence[Effect],
+                       device: Device) -> np.ndarray:
+    """The variance channel's forward model: predicted temporal variance of each variance bin (the quantisation
+    variance plus every noise effect's)."""
+    out = np.full(len(bins.level), QUANT_VAR)
+    for r in np.unique(bins.group):
+        sel = bins.group == r
+        ctx = context(device, rgroups[r])
+        for e in noise_effects:
+            out[sel] += np.asarray(e.variance(bins.level[sel], ctx), float)
+    return np.maximum(out, 1e-12)

@@ -1,0 +1,128 @@
+"""The check's results: dataclasses with ``to_dict()`` for ``--json`` (reports take these, never recompute)."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class ParamEstimate:
+    effect: str
+    name: str
+    value: float
+    se: float | None
+    unit: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class PatternEstimate:
+    effect: str
+    name: str
+    blocks: int
+    rms: float
+    maximum: float
+    hyper: str | None = None
+    hyper_value: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class CheckRow:
+    statistic: str
+    measured: float
+    predicted: float
+    z: float | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class ChannelTest:
+    """One channel's test of a candidate: LM (or likelihood-ratio) statistic, degrees of freedom, sample size."""
+
+    channel: str
+    lm: float
+    df: int
+    n: int
+    detail: str
+    boundary: bool = False  #: variance component tested at zero: the null distribution is ½χ²₀ + ½χ²₁
+    absorbed: bool = False  #: the model's own parameters absorb (almost) all of the signature
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class Candidate:
+    """One candidate effect's evidence."""
+
+    effect: str
+    delta_bic: float
+    p: float
+    flagged: bool
+    lm: float
+    df: int
+    p_raw: float
+    q: int
+    tests: list[ChannelTest]
+    evidence: str
+    absorbed: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"effect": self.effect, "delta_bic": self.delta_bic, "p": self.p, "flagged": self.flagged,
+                "lm": self.lm, "df": self.df, "p_raw": self.p_raw, "q": self.q, "evidence": self.evidence,
+                "tests": [t.to_dict() for t in self.tests]}
+
+
+@dataclass
+class PlotData:
+    """Arrays kept for the report (not serialised)."""
+
+    residual_map: np.ndarray
+    rms_map: np.ndarray
+    consistency_map: np.ndarray
+    class_map: np.ndarray
+    covariates: dict[str, dict[str, Any]]
+    counts: dict[str, Any]
+    ripley: dict[str, Any]
+    variance: dict[str, Any]
+
+
+@dataclass
+class CheckResult:
+    """Everything :func:`check` found.  ``to_dict()`` gives the documented JSON."""
+
+    effects: list[str]
+    params: list[ParamEstimate]
+    patterns: list[PatternEstimate]
+    error: dict[str, Any]
+    gof: dict[str, float | None]
+    checks: list[CheckRow]
+    candidates: list[Candidate]
+    warnings: list[str]
+    data: dict[str, Any]
+    plots: PlotData | None = None
+    baseline: "CheckResult | None" = None
+
+    @property
+    def flagged(self) -> list[str]:
+        return [c.effect for c in self.candidates if c.flagged]
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {"effects": self.effects, "error": self.error, "gof": self.gof,
+               "candidates": [c.to_dict() for c in self.candidates],
+               "params": [p.to_dict() for p in self.params], "patterns": [p.to_dict() for p in self.patterns],
+               "checks": [c.to_dict() for c in self.checks], "warnings": self.warnings, "data": self.data}
+        if self.baseline is not None:
+            out["before"] = {"effects": self.baseline.effects, "error": self.baseline.error,
+                             "gof": self.baseline.gof, "flagged": self.baseline.flagged}
+        return out

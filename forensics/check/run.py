@@ -1,0 +1,147 @@
+"""Entry points: the base model, the candidates, and :func:`check` — measurements → evidence → fit →
+goodness of fit → diagnosis → result."""
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from forensics._shared.errors import UsageError
+from forensics._shared.progress import Progress, no_progress
+from forensics._shared.rng import RngLike
+from forensics.check.classes import CLASSES, STK
+from forensics.check.design import design_warnings, light_levels
+from forensics.check.diagnosis import diagnose
+from forensics.check.evidence import Evidence
+from forensics.check.fit import FittedModel, fit_model
+from forensics.check.gof import class_errors, covariate_checks, growth_gof, pixel_gof, spatial_gof, variance_gof
+from forensics.check.measurements import Measurements, load_measurements
+from forensics.check.result import CheckResult, CheckRow, PlotData
+from forensics.check.scene import KERNEL_VAR
+from forensics.io.dataset import Dataset
+from forensics.sensor.catalogue import PARTIAL, STUCK
+from forensics.sensor.model import EFFECTS, Effect, make_effect
+
+
+def base_model() -> list[Effect]:
+    """The base model: every registered effect whose role is ``base``, at its defaults."""
+    return [cls() for cls in EFFECTS.values() if cls.role == "base"]
+
+
+def candidate_names(model_effects: Sequence[Effect]) -> list[str]:
+    """Registered candidate effects not in the model."""
+    have = {e.key for e in model_effects}
+    return [n for n, c in EFFECTS.items() if c.role == "candidate" and n not in have]
+
+
+def resolve_effects(add: Sequence[str | Effect]) -> list[Effect]:
+    """Effects from names, ``module:Class``, ``file.py:Class`` or instances."""
+    return [spec if isinstance(spec, Effect) else make_effect(spec) for spec in add]
+
+
+def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
+    """Fit ``effects`` to prepared evidence, score, and diagnose (``effects`` are left unchanged)."""
+    fitted = fit_model(ev, effects)
+    px = fitted.pixels
+    checks: list[CheckRow] = []
+    classes = class_errors(ev, fitted)
+    vals = [v for v in classes.values() if v is not None]
+    gof_pixel, consistency = pixel_gof(ev, fitted, checks)
+    covariates = covariate_checks(ev, fitted, checks)
+    err_var, gof_var = variance_gof(ev, fitted, checks)
+    err_growth, gof_growth = growth_gof(ev, fitted, checks)
+    gof_spatial, ripley = spatial_gof(ev, fitted, checks)
+    for name, value in classes.items():
+        if value is not None:
+            n = int(np.sum(ev.usable & (px.classes == CLASSES.index(name))))
+            checks.insert(0, CheckRow(f"pixel: held-out error² ({name}, {n} pixel means)", value**2, 1.0,
+                                      (value**2 - 1) / math.sqrt(2 / max(n, 1))))
+    candidates, notes = diagnose(ev, fitted, candidate_names(fitted.effects))
+    warn = list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
+    return CheckResult(
+        effects=[e.key for e in fitted.effects],
+        params=fitted.params,
+        patterns=fitted.patterns,
+        error={"pixel": max(vals) if vals else None, "classes": classes, "variance": err_var, "growth": err_growth},
+        gof={"pixel": gof_pixel, "variance": gof_var, "growth": gof_growth, "spatial": gof_spatial},
+        checks=checks,
+        candidates=candidates,
+        warnings=warn,
+        data=_data_summary(ev, fitted),
+        plots=_plot_data(ev, fitted, consistency, covariates, ripley),
+    )
+
+
+def _plot_data(ev: Evidence, fitted: FittedModel, consistency: np.ndarray, covariates: dict[str, Any],
+               ripley: dict[str, Any]) -> PlotData:
+    """The arrays the report draws: residual maps, counts with the model's band, the variance channel."""
+    meas, px, counts = ev.meas, fitted.pixels, ev.defects.counts
+    r = meas.mean_b - fitted.mu_b
+    nb = meas.n_b[:, None, None].astype(float)
+    zb = r / np.sqrt(px.floor * (1.0 + np.where(px.classes == STK, 0.0, KERNEL_VAR)) / nb)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        residual_map = np.nanmean(np.where(ev.usable, r, np.nan), axis=0)
+        rms_map = np.sqrt(np.nanmean(np.where(ev.usable, zb * zb, np.nan), axis=0))
+    counts_plot = {"times": ev.times, "observed": {k: counts[k] for k in (PARTIAL, STUCK)},
+                   "expected": {k: fitted.expected[k] + counts[k][0] for k in (PARTIAL, STUCK)}}
+    if fitted.sims:
+        counts_plot["band"] = {k: (np.quantile(v, 0.025, axis=0), np.quantile(v, 0.975, axis=0))
+                               for k, v in fitted.sims["counts"].items()}
+    variance_plot = {"level": px.bins.level, "observed": px.bins.observed, "predicted": fitted.variance_pred,
+                     "df": px.bins.df}
+    return PlotData(residual_map, rms_map, consistency, px.classes[-1], covariates, counts_plot, ripley, variance_plot)
+
+
+def _data_summary(ev: Evidence, fitted: FittedModel) -> dict[str, Any]:
+    meas, px, defects = ev.meas, fitted.pixels, ev.defects
+    return {"folder": str(meas.root), "frames": meas.n_frames, "conditions": len(meas.groups),
+            "repeated_conditions": len(ev.rep), "epochs": [float(t) for t in ev.times],
+            "size": [meas.shape[1], meas.shape[0]], "full_scale": meas.full_scale, "border": meas.border,
+            "light_levels": light_levels(ev, px),
+            "defects": {"partial": int(defects.counts[PARTIAL][-1]), "stuck": int(defects.counts[STUCK][-1]),
+                        "threshold_dn": float(defects.threshold[PARTIAL])},
+            "classes": {name: int(np.sum(px.classes[-1][meas.interior] == k)) for k, name in enumerate(CLASSES)}}
+
+
+def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
+          baseline: bool = True, n_sim: int = 199, progress: Progress = no_progress) -> CheckResult:
+    """Fit the base model plus ``add`` to a dataset, score it and diagnose what is missing.
+
+    Parameters
+    ----------
+    data
+        Dataset (or its folder, or prepared :class:`Measurements`).
+    add
+        Effects to add to the base model: registry names, ``module:Class``, ``file.py:Class`` or instances
+        (instances are not changed).
+    rng
+        Generator or integer seed of the Monte-Carlo simulations (fixed patterns, arrival counts, placement);
+        see :mod:`forensics.check.streams`.
+    baseline
+        With ``add``, also check the base model alone and keep it as :attr:`CheckResult.baseline`
+        (for before/after comparisons).
+    n_sim
+        Monte-Carlo simulations of the fitted arrival model.
+
+    Returns
+    -------
+    CheckResult
+    """
+    extra = resolve_effects(add)
+    base = base_model()
+    names = [e.key for e in base]
+    for e in extra:
+        if e.key in names:
+            raise UsageError(f"the effect '{e.key}' is already in the model")
+        names.append(e.key)
+    meas = data if isinstance(data, Measurements) else load_measurements(data, progress=progress)
+    ev = Evidence(meas, rng=rng, n_sim=n_sim)
+    result = run_check(ev, [*base, *extra])
+    if extra and baseline:
+        result.baseline = run_check(ev, base_model())
+    return result

@@ -1,0 +1,214 @@
+"""The model check's report: tables, residual maps, residuals against every covariate, defect counts against
+time with the model's band, Ripley's L with its envelope (it draws a :class:`~forensics.check.CheckResult`,
+never recomputes)."""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from forensics.check.classes import CHANNELS, CLASSES
+from forensics.check.diagnosis import FLAG_DBIC
+from forensics.check.result import CheckResult
+from forensics.report.html import Report, new_figure
+from forensics.sensor.catalogue import PARTIAL, STUCK
+
+
+def _label(ax: Any, xlabel: str, ylabel: str, title: str) -> None:
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+
+
+def _symlog(v: float) -> float:
+    return math.copysign(math.log10(1 + abs(v)), v)
+
+
+def check_report(result: CheckResult, title: str = "Model check") -> Report:
+    """An HTML report of a check: tables, residual maps, residuals against every covariate, defect counts
+    against time with the model's band, Ripley's L with its envelope; with a baseline, before and after side by
+    side."""
+    rep = Report(title)
+    runs = [("before", result.baseline), ("after", result)] if result.baseline is not None else [("model", result)]
+    _summary(rep, result, runs)
+    _numbers(rep, result, runs)
+    _residual_maps(rep, result, runs)
+    _covariates(rep, result, runs)
+    _variance(rep, result, runs)
+    _counts(rep, result, runs)
+    _ripley(rep, result, runs)
+    _checks(rep, result, runs)
+    return rep
+
+
+def _summary(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """Size of the data, the model and the warnings."""
+    data = result.data
+    rep.text(f"{data['frames']} frames of {data['size'][0]}×{data['size'][1]} pixels (full scale "
+             f"{data['full_scale']:g} DN), {data['conditions']} conditions ({data['repeated_conditions']} with repeated "
+             f"frames), {len(data['epochs'])} epochs, {data['light_levels']} light levels; "
+             f"{data['classes']['partial']} partially stuck and {data['classes']['stuck']} stuck pixels at the last epoch.")
+    rep.text("Model: " + " + ".join(result.effects)
+             + (f" (before: {' + '.join(result.baseline.effects)})" if result.baseline is not None else ""))
+    for w in result.warnings:
+        rep.text("Warning: " + w, note=True)
+
+
+def _numbers(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """Error and goodness of fit, before and after; the fitted parameters; the ranked candidates."""
+    rep.heading("Error and goodness of fit")
+    header = ["", *[name for name, _ in runs]]
+    rows = []
+    for key, label in (("pixel", "error.pixel (held-out; 1 = noise floor)"),
+                       ("variance", "error.variance (RMS ln obs/pred)"),
+                       ("growth", "error.growth (deviance/df)")):
+        rows.append([label, *[_num(r.error[key]) for _, r in runs]])
+    for cls in CLASSES:
+        rows.append([f"  class {cls}", *[_num(r.error["classes"][cls]) for _, r in runs]])
+    for key in CHANNELS:
+        rows.append([f"gof.{key} (p)", *[_num(r.gof[key]) for _, r in runs]])
+    rep.table(header, rows)
+    rep.heading("Fitted parameters")
+    rep.table(["effect", "parameter", "value", "standard error", "unit"],
+              [[p.effect, p.name, p.value, "—" if p.se is None else p.se, p.unit] for p in result.params]
+              + [[p.effect, f"{p.name} (pattern, {p.blocks} blocks)", p.rms, "rms", p.hyper or ""]
+                 for p in result.patterns])
+    rep.heading("Candidates")
+    for name, r in runs:
+        rep.table(["rank", "effect", "predicted ΔBIC", "p (Holm)", "flagged", "evidence"],
+                  [[i + 1, c.effect, c.delta_bic, c.p, "yes" if c.flagged else "", c.evidence]
+                   for i, c in enumerate(r.candidates)], caption=name)
+    if result.candidates or (result.baseline and result.baseline.candidates):
+        fig, axes = new_figure(5.0 * len(runs), 3.2, ncols=len(runs))
+        axes = np.atleast_1d(axes)
+        for ax, (name, r) in zip(axes, runs):
+            cands = r.candidates
+            vals = [_symlog(c.delta_bic) for c in cands]
+            colours = ["C3" if c.flagged else "C7" for c in cands]
+            ax.barh(range(len(cands)), vals, color=colours)
+            ax.set_yticks(range(len(cands)), [c.effect for c in cands], fontsize=8)
+            ax.invert_yaxis()
+            ax.axvline(_symlog(FLAG_DBIC), color="k", lw=0.8, ls=":")
+            ax.set_xlabel("predicted ΔBIC (sign · log10(1 + |ΔBIC|))")
+            ax.set_title(name)
+        rep.figure(fig, "candidates", "Candidates ranked by predicted ΔBIC; red: flagged (ΔBIC > 10 and Holm "
+                   "p < 0.01); dotted: ΔBIC = 10.")
+
+
+def _residual_maps(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """Per-pixel maps: held-out RMS residual, mean residual, per-pixel consistency."""
+    rep.heading("Where the model fails: pixels")
+    fig, axes = new_figure(4.2 * len(runs), 10.5, ncols=len(runs), nrows=3)
+    axes = np.asarray(axes).reshape(3, len(runs))
+    lim_r = max(float(np.nanpercentile(np.abs(r.plots.residual_map), 99.5)) for _, r in runs) or 1.0
+    for j, (name, r) in enumerate(runs):
+        im = axes[0, j].imshow(r.plots.rms_map, cmap="magma", vmin=0, vmax=3, interpolation="nearest")
+        axes[0, j].set_title(f"{name}: held-out RMS residual / noise floor", fontsize=9)
+        fig.colorbar(im, ax=axes[0, j], shrink=0.8)
+        im = axes[1, j].imshow(r.plots.residual_map, cmap="RdBu_r", vmin=-lim_r, vmax=lim_r, interpolation="nearest")
+        axes[1, j].set_title(f"{name}: mean held-out residual (DN)", fontsize=9)
+        fig.colorbar(im, ax=axes[1, j], shrink=0.8)
+        im = axes[2, j].imshow(r.plots.consistency_map, cmap="RdBu_r", vmin=-5, vmax=5, interpolation="nearest")
+        axes[2, j].set_title(f"{name}: per-pixel consistency z", fontsize=9)
+        fig.colorbar(im, ax=axes[2, j], shrink=0.8)
+        for ax in axes[:, j]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    rep.figure(fig, "residual_maps", "Top: each pixel's held-out residual relative to its noise floor (RMS over "
+               "conditions; 1 = at the floor): misfitting pixels light up. Middle: the held-out residual averaged "
+               "over conditions. Bottom: the in-sample residual's component that is the same in every condition, "
+               "standardised (a fixed pattern the model lacks shows as structure: stripes, speckle, rings).")
+
+
+def _covariates(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """Held-out residuals against every covariate, per pixel class."""
+    covs = list(result.plots.covariates)
+    fig, axes = new_figure(3.0 * len(covs), 3.2, ncols=len(covs))
+    axes = np.atleast_1d(axes)
+    styles = {"before": dict(ls="--", alpha=0.6), "after": dict(ls="-"), "model": dict(ls="-")}
+    for ax, cname in zip(axes, covs):
+        for name, r in runs:
+            entry = r.plots.covariates.get(cname, {})
+            for k, klass in enumerate(("normal", "partial")):
+                if klass not in entry:
+                    continue
+                e = entry[klass]
+                ax.errorbar(e["x"], e["mean"], yerr=1.96 * e["se"], color=f"C{k}", marker="o", ms=3, capsize=2,
+                            label=f"{klass} ({name})", **styles[name])
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_xlabel(cname, fontsize=8)
+        ax.set_ylabel("held-out residual (DN)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0].legend(fontsize=6)
+    rep.figure(fig, "covariates", "Held-out residuals against every covariate (mean ± 95 % per bin), per pixel "
+               "class: a missing effect shows as a trend with the covariates it depends on.")
+
+
+def _variance(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """Observed against predicted temporal variance."""
+    fig, axes = new_figure(4.2 * len(runs), 3.2, ncols=len(runs))
+    axes = np.atleast_1d(axes)
+    for ax, (name, r) in zip(axes, runs):
+        v = r.plots.variance
+        if len(v["level"]):
+            ratio = np.log(v["observed"] / v["predicted"])
+            ax.errorbar(v["level"], ratio, yerr=1.96 * np.sqrt(2 / v["df"]), fmt="o", ms=3, capsize=2)
+        ax.axhline(0, color="k", lw=0.6)
+        _label(ax, "mean signal (DN)", "ln(observed / predicted variance)", name)
+    rep.figure(fig, "variance", "Temporal variance from repeated frames against the model's prediction, per "
+               "condition and signal level.")
+
+
+def _counts(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """Defect counts against time with the model's band."""
+    rep.heading("Where the model fails: defects")
+    fig, axes = new_figure(4.2 * len(runs), 3.4, ncols=len(runs))
+    axes = np.atleast_1d(axes)
+    for ax, (name, r) in zip(axes, runs):
+        c = r.plots.counts
+        t = np.asarray(c["times"])
+        for kind, colour, label in ((PARTIAL, "C0", "partially stuck"), (STUCK, "C3", "stuck")):
+            if "band" in c:
+                lo, hi = c["band"][kind]
+                ax.fill_between(t, lo, hi, color=colour, alpha=0.2)
+            ax.plot(t, c["expected"][kind], color=colour, lw=1)
+            ax.plot(t, c["observed"][kind], "o", color=colour, ms=4, label=label)
+        _label(ax, "capture time (year)", "defects detected (cumulative)", name)
+        ax.legend(fontsize=7)
+    rep.figure(fig, "counts", "Defects detected by each epoch (points) against the fitted arrival model (line) "
+               "and its 95 % Monte-Carlo band.")
+
+
+def _ripley(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """Ripley's L of the defect sites with the fitted model's envelope."""
+    if result.plots.ripley.get("radii") is not None:
+        fig, axes = new_figure(4.2 * len(runs), 3.4, ncols=len(runs))
+        axes = np.atleast_1d(axes)
+        for ax, (name, r) in zip(axes, runs):
+            rp = r.plots.ripley
+            if rp.get("radii") is None:
+                continue
+            rr = np.asarray(rp["radii"])
+            if "lo" in rp:
+                ax.fill_between(rr, rp["lo"] - rr, rp["hi"] - rr, color="C7", alpha=0.3, label="95 % envelope")
+                ax.plot(rr, rp["mean"] - rr, color="C7", lw=1, label="fitted model (mean)")
+            ax.plot(rr, rp["observed"] - rr, "o-", color="C0", ms=3, label="observed")
+            ax.axhline(0, color="k", lw=0.6)
+            _label(ax, "r (pixels)", "L(r) − r", name)
+            ax.legend(fontsize=7)
+        rep.figure(fig, "ripley", "Ripley's L of the defect sites at the last epoch (translation edge correction) "
+                   "against simulations of the fitted arrival model: above the envelope means clustering.")
+
+
+def _checks(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
+    """The table of checks of each run."""
+    rep.heading("Checks")
+    for name, r in runs:
+        rep.table(["statistic", "measured", "predicted", "z"],
+                  [[c.statistic, c.measured, c.predicted, "—" if c.z is None else c.z] for c in r.checks],
+                  caption=name)
+
+
+def _num(v: Any) -> Any:
+    return "—" if v is None else v

@@ -1,0 +1,62 @@
+"""What an effect may ask of the measurements when it is fitted or tested (model checking).
+
+The model checker (:mod:`forensics.check`) passes an object with exactly these members to
+:meth:`Effect.fit <forensics.sensor.model.Effect.fit>`, :meth:`Effect.probe <forensics.sensor.model.Effect.probe>`
+and :meth:`Effect.signature <forensics.sensor.model.Effect.signature>`.  They are protocols, so that the
+sensor model does not depend on the checker (``forensics.sensor`` never imports ``forensics.check``).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from forensics.sensor.model import Effect
+
+
+class Evidence(Protocol):
+    """The measured defect statistics an effect's own estimator (:meth:`Effect.fit`) may use."""
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(height, width)`` of the analysed pixels."""
+        ...
+
+    def amplitude_max(self, kind: int, default: float) -> float:
+        """Largest detected amplitude of defects of ``kind`` (unbiased), ``default`` when none was detected."""
+        ...
+
+    def detect_fraction(self, kind: int, amplitude: float) -> float:
+        """Fraction of uniform amplitudes in [0, ``amplitude``] above the detection threshold of ``kind``."""
+        ...
+
+    def arrival_rate(self, kind: int) -> float:
+        """Detected arrivals of ``kind`` per megapixel per year."""
+        ...
+
+    def site_intensity(self) -> float:
+        """Defective sites per pixel at the last epoch."""
+        ...
+
+    def cluster_excess(self) -> tuple[float, float]:
+        """Thomas-cluster excess (A, σ) of Ripley's K of the defect sites at the last epoch."""
+        ...
+
+
+class ChannelSignature(Protocol):
+    """How one parameter of an effect moves one channel's statistics (see :class:`forensics.check.Signature`)."""
+
+    channel: str
+    name: str
+    x: np.ndarray
+    blocks: np.ndarray | None
+    pixel_local: bool
+
+
+class SignatureEvidence(Evidence, Protocol):
+    """:class:`Evidence` of a fitted model, which also computes the generic signature of an effect."""
+
+    def signature(self, effect: "Effect") -> list[ChannelSignature]:
+        """The generic finite-difference signature of ``effect`` (not in the model) at its null values."""
+        ...
