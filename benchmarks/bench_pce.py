@@ -24,11 +24,10 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
-from typing import Callable
 
 import numpy as np
+
+from _timing import timeit  # benchmarks/ is on sys.path when a script runs
 
 from forensics.prnu.fingerprint import Fingerprint
 from forensics.prnu.match import _pce_with, _Spectrum, pce, score_query
@@ -46,15 +45,6 @@ def plain_pce(a: np.ndarray, b: np.ndarray, exclusion: int = 11) -> float:
     cols = np.arange(-r, r + 1) % c.shape[1]
     mask[np.ix_(rows, cols)] = False
     return float(np.sign(c[0, 0]) * c[0, 0] ** 2 / np.mean(c[mask] ** 2))
-
-
-def timeit(func: Callable[[], object], repeat: int) -> tuple[float, float, object]:
-    times, out = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = func()
-        times.append(time.perf_counter() - t0)
-    return min(times), statistics.median(times), out
 
 
 def main() -> None:

@@ -21,13 +21,12 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
+
+from _timing import timeit  # benchmarks/ is on sys.path when a script runs
 from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "prnu"))
@@ -49,15 +48,6 @@ def make_image(seed: int = 0) -> np.ndarray:
     grey = scene * (1 + k)
     rgb = np.stack([0.9 * grey, grey, 0.8 * grey], axis=-1) + rng.normal(0, 2, (h, w, 3)).astype(np.float32)
     return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
-
-
-def timeit(func: Callable[[], object], repeat: int) -> tuple[float, float, object]:
-    times, out = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = func()
-        times.append(time.perf_counter() - t0)
-    return min(times), statistics.median(times), out
 
 
 def main() -> None:

@@ -23,11 +23,10 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
-from typing import Callable
 
 import numpy as np
+
+from _timing import timeit  # benchmarks/ is on sys.path when a script runs
 
 from forensics.stats import scores
 
@@ -55,16 +54,6 @@ def loop_bootstrap(g: np.ndarray, i: np.ndarray, rng: np.random.Generator, n_boo
     for b in range(n_boot):
         out[b] = scores.eer(g[rng.integers(0, g.size, g.size)], i[rng.integers(0, i.size, i.size)]).eer
     return out
-
-
-def timeit(func: Callable[[], object], repeat: int) -> tuple[float, float, object]:
-    times = []
-    result = None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        result = func()
-        times.append(time.perf_counter() - t0)
-    return min(times), statistics.median(times), result
 
 
 def main() -> None:

@@ -23,7 +23,7 @@ def register(sub) -> None:
     check = command_parser(
         inner, "check", "fit the sensor model to a dataset, show where it fails and name the missing effect",
         "forensics model check data/ --add nonlinearity --report report/",
-        "Fit the base model (growth, offset, stuck, read noise, saturation) plus the --add effects to a dataset "
+        "Fit the base model (its effects are listed by 'forensics model effects') plus the --add effects to a dataset "
         "(images + manifest.csv with captured, exposure_s, iso, temperature_c; repeated frames per condition). "
         "Prints the fitted parameters with standard errors, the held-out error (1.0 = the noise floor measured "
         "from repeated frames), a table of checks, and the candidate effects ranked by predicted ΔBIC, flagged "

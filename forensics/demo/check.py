@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from forensics._shared.progress import Progress
+from forensics._shared.rng import RngLike
 from forensics.check import Evidence, base_model, load_measurements, run_check
 from forensics.report.check import check_report
 from forensics.report.html import Report
@@ -14,13 +15,13 @@ TITLE = "Model against measurement: find the missing effect, add it, watch the e
 HIDDEN = "dark_current"
 
 
-def run(workdir: Path, seed: int, progress: Progress) -> DemoSection:
+def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
     from forensics.fixtures.hidden import HIDDEN as STRENGTHS
     from forensics.fixtures.hidden import make_hidden
 
-    data = make_hidden(HIDDEN, workdir / "lab", rng=seed, progress=progress)
+    data = make_hidden(HIDDEN, workdir / "lab", rng=rng, progress=progress)
     meas = load_measurements(data.out, progress=progress)
-    evidence = Evidence(meas, rng=seed)
+    evidence = Evidence(meas, rng=rng)
     before = run_check(evidence, base_model())
     named = before.flagged[0] if before.flagged else None
     rep = Report(TITLE)

@@ -11,7 +11,7 @@ Sites are pixel positions; a site ``(x, y)`` is placed at the pixel centre
 
 Because sites live on a pixel lattice, the exact null distribution of these
 statistics differs slightly from the continuous one at radii of a pixel or
-two; tests in :mod:`forensics.check.core` therefore take their null distribution
+two; tests in :mod:`forensics.check` therefore take their null distribution
 from Monte-Carlo simulations of the fitted model on the same lattice.
 """
 from __future__ import annotations
