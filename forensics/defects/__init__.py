@@ -3,31 +3,21 @@ stuck pixels from one streaming pass over a set, the growth of their number over
 eq. 16–19, Chapman, Garwood rates, a Poisson trend test) and dating a set or a single image from the
 defects it shows.  No figures: those are in :mod:`forensics.report.defects`.
 """
-from forensics.defects.dating import ImageDating, SetDating, date_dataset, date_image, date_set
-from forensics.defects.detection import (
-    DEFAULT_Q,
-    DEFAULT_SIGMA,
-    ChannelFit,
-    DetectionResult,
-    MaskSpec,
-    detect,
-    detect_dataset,
-    parse_mask,
-    robust_normal,
-)
-from forensics.defects.growth import (
-    Epoch,
-    GrowthModel,
-    GrowthResult,
-    KindGrowth,
-    RateEstimate,
-    epochs_from_datasets,
-    estimate_growth,
-)
+import lazy_loader as _lazy
 
-__all__ = [
-    "ImageDating", "SetDating", "date_dataset", "date_image", "date_set",
-    "DEFAULT_Q", "DEFAULT_SIGMA", "ChannelFit", "DetectionResult", "MaskSpec", "detect", "detect_dataset",
-    "parse_mask", "robust_normal",
-    "Epoch", "GrowthModel", "GrowthResult", "KindGrowth", "RateEstimate", "epochs_from_datasets", "estimate_growth",
-]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "dating": ["ImageDating", "SetDating", "date_dataset", "date_image", "date_set"],
+        "detection": [
+            "DEFAULT_Q", "DEFAULT_SIGMA", "ChannelFit", "DetectionResult", "MaskSpec", "detect", "detect_dataset",
+            "parse_mask", "robust_normal",
+        ],
+        "growth": [
+            "Epoch", "GrowthModel", "GrowthResult", "KindGrowth", "RateEstimate", "epochs_from_datasets",
+            "estimate_growth",
+        ],
+    },
+)

@@ -12,6 +12,13 @@ does its science, has :mod:`forensics.report` draw its part of the report, and
 returns it with a few summary lines for the terminal and its numbers for
 ``--json``.  Sections that are not built yet are simply absent.
 """
-from forensics.demo.runner import SECTIONS, DemoResult, DemoSection, available_sections, run_demo
+import lazy_loader as _lazy
 
-__all__ = ["SECTIONS", "DemoResult", "DemoSection", "available_sections", "run_demo"]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "runner": ["SECTIONS", "DemoResult", "DemoSection", "available_sections", "run_demo"],
+    },
+)

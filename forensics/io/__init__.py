@@ -2,37 +2,22 @@
 with an optional ``manifest.csv`` (frames, capture dates, conditions, epochs), one-pass streaming stack
 statistics (mean, variance, minimum, maximum per pixel), and the summaries behind ``forensics info``.
 """
-from forensics.io.dataset import (
-    Dataset,
-    Frame,
-    decimal_year,
-    from_decimal_year,
-    list_images,
-    open_dataset,
-    parse_captured,
-    split_epochs,
-    write_manifest,
-)
-from forensics.io.describe import DatasetSummary, summarize_dataset, summarize_file
-from forensics.io.images import (
-    IMAGE_EXTENSIONS,
-    RAW_EXTENSIONS,
-    ImageInfo,
-    RawMosaic,
-    bits_dtype,
-    is_raw,
-    read_image,
-    read_info,
-    read_raw,
-    write_image,
-)
-from forensics.io.stack import StackAccumulator, StackStats, stack_stats
+import lazy_loader as _lazy
 
-__all__ = [
-    "Dataset", "Frame", "decimal_year", "from_decimal_year", "list_images", "open_dataset", "parse_captured",
-    "split_epochs", "write_manifest",
-    "DatasetSummary", "summarize_dataset", "summarize_file",
-    "IMAGE_EXTENSIONS", "RAW_EXTENSIONS", "ImageInfo", "RawMosaic", "bits_dtype", "is_raw", "read_image",
-    "read_info", "read_raw", "write_image",
-    "StackAccumulator", "StackStats", "stack_stats",
-]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "dataset": [
+            "Dataset", "Frame", "decimal_year", "from_decimal_year", "list_images", "open_dataset",
+            "parse_captured", "split_epochs", "write_manifest",
+        ],
+        "describe": ["DatasetSummary", "summarize_dataset", "summarize_file"],
+        "images": [
+            "IMAGE_EXTENSIONS", "RAW_EXTENSIONS", "ImageInfo", "RawMosaic", "bits_dtype", "is_raw", "read_image",
+            "read_info", "read_raw", "write_image",
+        ],
+        "stack": ["StackAccumulator", "StackStats", "stack_stats"],
+    },
+)

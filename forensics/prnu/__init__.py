@@ -3,48 +3,26 @@ fingerprints, matching (NCC, PCE with false-alarm probabilities), the reference 
 protocol (EER with a bootstrap interval) and its fingerprint-ageing table (table 2).  No figures: those
 are in :mod:`forensics.report.prnu`.
 """
-from forensics.prnu.ageing import (
-    AgeingTable,
-    MedianFingerprintBuilder,
-    PairStatistic,
-    ageing_table,
-    build_ageing_fingerprints,
-)
-from forensics.prnu.fingerprint import Fingerprint, FingerprintBuilder, Region, build_fingerprint, parse_region
-from forensics.prnu.match import (
-    PCE_THRESHOLD,
-    QUERY_SIGMA,
-    MatchScore,
-    PceResult,
-    Query,
-    SetMatch,
-    match_set,
-    ncc,
-    pce,
-    prepare_query,
-    score_matrix,
-    score_pair,
-    score_query,
-)
-from forensics.prnu.residual import median_residual, residual_and_grey, wavelet_residual, wiener_dft, zero_mean_cfa
-from forensics.prnu.samedevice import (
-    EerVerdict,
-    ImageSet,
-    SameDeviceResult,
-    SetPlan,
-    SetSummary,
-    eer_verdict,
-    expected_eer_ci_width,
-    plan_set,
-    same_device,
-)
+import lazy_loader as _lazy
 
-__all__ = [
-    "AgeingTable", "MedianFingerprintBuilder", "PairStatistic", "ageing_table", "build_ageing_fingerprints",
-    "Fingerprint", "FingerprintBuilder", "Region", "build_fingerprint", "parse_region",
-    "PCE_THRESHOLD", "QUERY_SIGMA", "MatchScore", "PceResult", "Query", "SetMatch", "match_set", "ncc", "pce",
-    "prepare_query", "score_matrix", "score_pair", "score_query",
-    "median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft", "zero_mean_cfa",
-    "EerVerdict", "ImageSet", "SameDeviceResult", "SetPlan", "SetSummary", "eer_verdict", "expected_eer_ci_width",
-    "plan_set", "same_device",
-]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "ageing": [
+            "AgeingTable", "MedianFingerprintBuilder", "PairStatistic", "ageing_table",
+            "build_ageing_fingerprints",
+        ],
+        "fingerprint": ["Fingerprint", "FingerprintBuilder", "Region", "build_fingerprint", "parse_region"],
+        "match": [
+            "PCE_THRESHOLD", "QUERY_SIGMA", "MatchScore", "PceResult", "Query", "SetMatch", "match_set", "ncc",
+            "pce", "prepare_query", "score_matrix", "score_pair", "score_query",
+        ],
+        "residual": ["median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft", "zero_mean_cfa"],
+        "samedevice": [
+            "EerVerdict", "ImageSet", "SameDeviceResult", "SetPlan", "SetSummary", "eer_verdict",
+            "expected_eer_ci_width", "plan_set", "same_device",
+        ],
+    },
+)

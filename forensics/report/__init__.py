@@ -4,16 +4,17 @@ module of figures per domain — :mod:`~forensics.report.ageing`, :mod:`~forensi
 (and the model check's) — plus the demo's page.  Report functions take result objects and never
 re-estimate; science modules never import this package.
 """
-from forensics.report.defects import dating_report, detection_report, growth_report
-from forensics.report.html import Report, new_figure
-from forensics.report.prnu import add_same_device, match_report, same_device_report
-from forensics.report.scores import plot_det, plot_score_histograms
-from forensics.report.validate import validation_report
+import lazy_loader as _lazy
 
-__all__ = [
-    "Report", "new_figure",
-    "dating_report", "detection_report", "growth_report",
-    "add_same_device", "match_report", "same_device_report",
-    "plot_det", "plot_score_histograms",
-    "validation_report",
-]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "defects": ["dating_report", "detection_report", "growth_report"],
+        "html": ["Report", "new_figure"],
+        "prnu": ["add_same_device", "match_report", "same_device_report"],
+        "scores": ["plot_det", "plot_score_histograms"],
+        "validate": ["validation_report"],
+    },
+)

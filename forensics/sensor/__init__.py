@@ -5,46 +5,28 @@ list of :class:`Effect` objects applied in physical order (:class:`Stage`); :met
 draws one :class:`Device` (one defect history, its fixed patterns), whose :meth:`Device.expose` forms
 frames.  Importing this package registers the built-in effects, so :func:`make_effect` knows them.
 """
-from forensics.sensor.catalogue import KIND_CODES, KIND_NAMES, PARTIAL, STUCK, DefectCatalogue
-from forensics.sensor.model import (
-    EFFECTS,
-    Device,
-    Effect,
-    FrameContext,
-    Pattern,
-    SensorModel,
-    Stage,
-    load_model,
-    make_effect,
-    param,
-    register_effect,
-)
-from forensics.sensor.effects import (  # noqa: E402  (registers the built-in effects)
-    AcceleratingGrowth,
-    Clusters,
-    DarkCurrent,
-    Dsnu,
-    Gain,
-    Growth,
-    Nonlinearity,
-    Offset,
-    Prnu,
-    ReadNoise,
-    ShotNoise,
-    Stuck,
-    describe_effects,
-)
-from forensics.sensor.presets import PRESETS, preset
-from forensics.sensor.scenes import pink_texture, scene, scene_image
-from forensics.sensor.simulate import AgeingResult, age_dataset, make_scenes, parse_years, read_catalogue, write_catalogue
+import lazy_loader as _lazy
 
-__all__ = [
-    "PARTIAL", "STUCK", "KIND_NAMES", "KIND_CODES", "DefectCatalogue",
-    "Stage", "Effect", "Pattern", "FrameContext", "param", "EFFECTS", "register_effect", "make_effect",
-    "SensorModel", "Device", "load_model",
-    "Growth", "Offset", "Stuck", "ReadNoise", "Prnu", "Dsnu", "DarkCurrent", "Gain", "Nonlinearity", "ShotNoise",
-    "Clusters", "AcceleratingGrowth", "describe_effects",
-    "PRESETS", "preset",
-    "scene", "scene_image", "pink_texture",
-    "age_dataset", "AgeingResult", "parse_years", "make_scenes", "read_catalogue", "write_catalogue",
-]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "catalogue": ["KIND_CODES", "KIND_NAMES", "PARTIAL", "STUCK", "DefectCatalogue"],
+        "model": [
+            "EFFECTS", "Device", "Effect", "FrameContext", "Pattern", "SensorModel", "Stage", "load_model",
+            "make_effect", "param", "register_effect",
+        ],
+        "effects": [
+            "AcceleratingGrowth", "Clusters", "DarkCurrent", "Dsnu", "Gain", "Growth", "Nonlinearity", "Offset",
+            "Prnu", "ReadNoise", "ShotNoise", "Stuck", "describe_effects",
+        ],
+        "presets": ["PRESETS", "preset"],
+        "scenes": ["pink_texture", "scene", "scene_image"],
+        "simulate": [
+            "AgeingResult", "age_dataset", "make_scenes", "parse_years", "read_catalogue", "write_catalogue",
+        ],
+    },
+)
+
+from forensics.sensor import effects as _effects  # noqa: E402,F401  (registers the built-in effects)

@@ -3,47 +3,25 @@ statistics (exact Garwood / Clopper–Pearson / mid-p intervals, Poisson regress
 and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
 those are in :mod:`forensics.report.scores`.
 """
-from forensics.stats.counts import (
-    LEVEL,
-    PoissonFit,
-    TrendTest,
-    clopper_pearson,
-    garwood,
-    midp_binomial,
-    poisson_deviance,
-    poisson_glm,
-    trend_test,
-)
-from forensics.stats.scores import (
-    BootstrapResult,
-    DetCurve,
-    EerResult,
-    OperatingPoint,
-    Roc,
-    as_scores,
-    auc,
-    bootstrap_ci,
-    bootstrap_eer,
-    decision_threshold_at_far,
-    det_curve,
-    eer,
-    eer_convex_hull,
-    roc,
-)
-from forensics.stats.spatial import (
-    ClarkEvans,
-    clark_evans,
-    fit_thomas_excess,
-    ripley_k,
-    ripley_l,
-    thomas_excess,
-    window_area,
-)
+import lazy_loader as _lazy
 
-__all__ = [
-    "LEVEL", "PoissonFit", "TrendTest", "clopper_pearson", "garwood", "midp_binomial", "poisson_deviance",
-    "poisson_glm", "trend_test",
-    "BootstrapResult", "DetCurve", "EerResult", "OperatingPoint", "Roc", "as_scores", "auc", "bootstrap_ci",
-    "bootstrap_eer", "decision_threshold_at_far", "det_curve", "eer", "eer_convex_hull", "roc",
-    "ClarkEvans", "clark_evans", "fit_thomas_excess", "ripley_k", "ripley_l", "thomas_excess", "window_area",
-]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "counts": [
+            "LEVEL", "PoissonFit", "TrendTest", "clopper_pearson", "garwood", "midp_binomial", "poisson_deviance",
+            "poisson_glm", "trend_test",
+        ],
+        "scores": [
+            "BootstrapResult", "DetCurve", "EerResult", "OperatingPoint", "Roc", "as_scores", "auc",
+            "bootstrap_ci", "bootstrap_eer", "decision_threshold_at_far", "det_curve", "eer", "eer_convex_hull",
+            "roc",
+        ],
+        "spatial": [
+            "ClarkEvans", "clark_evans", "fit_thomas_excess", "ripley_k", "ripley_l", "thomas_excess",
+            "window_area",
+        ],
+    },
+)

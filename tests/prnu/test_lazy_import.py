@@ -1,0 +1,22 @@
+"""Importing one module of a domain does not import the whole domain (public names load lazily)."""
+import subprocess
+import sys
+
+
+def test_fingerprint_does_not_load_the_same_device_statistics():
+    code = ("import sys, forensics.prnu.fingerprint, forensics.prnu as p; "
+            "assert 'forensics.prnu.samedevice' not in sys.modules, 'eager'; "
+            "assert 'scipy.stats' not in sys.modules, 'scipy.stats'; "
+            "p.same_device; assert 'forensics.prnu.samedevice' in sys.modules")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-1500:]
+
+
+def test_every_public_name_resolves():
+    code = ("import importlib\n"
+            "for pkg in ('io', 'sensor', 'prnu', 'defects', 'stats', 'report', 'validate', 'demo', '_shared'):\n"
+            "    m = importlib.import_module('forensics.' + pkg)\n"
+            "    missing = [n for n in m.__all__ if getattr(m, n, None) is None]\n"
+            "    assert not missing, (pkg, missing)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-1500:]
