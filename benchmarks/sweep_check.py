@@ -11,6 +11,12 @@ Usage::
     .venv/bin/python benchmarks/sweep_check.py                 # 7 (+1 extra) candidates × 10 seeds + 20 null seeds
     .venv/bin/python benchmarks/sweep_check.py --seeds 3 --null 5 --workers 2
     .venv/bin/python benchmarks/sweep_check.py --only gain --seeds 10
+    .venv/bin/python benchmarks/sweep_check.py --conventions project,camera,8bit,14bit --seeds 3 --null 5
+    .venv/bin/python benchmarks/sweep_check.py --combo prnu,dark_current --combo gain,accelerating_growth
+
+With ``--combo A,B[,C]`` (repeatable; ``none`` for nothing hidden) the sweep hides several effects at once and
+runs forward selection (``forensics model check --auto``) instead: per combination, the seeds where it added
+exactly the hidden effects and ended with nothing flagged, and the median errors before (base) and after.
 
 Criteria (per run):
 * base: the hidden effect is flagged and ranked first;
@@ -36,22 +42,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 PIXEL_EFFECTS = ("prnu", "dark_current", "gain", "nonlinearity", "dsnu")
 
 
-def run_one(job: tuple[str, int]) -> dict:
+def run_one(job: tuple[str, int] | tuple[str, int, str]) -> dict:
     from forensics.fixtures.hidden import make_hidden
     from forensics.check import check
 
-    effect, seed = job
+    from forensics.fixtures.hidden import convention
+
+    effect, seed = job[:2]
+    conv = job[2] if len(job) > 2 else "project"  # (effect, seed[, convention])
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="sweep-check-") as tmp:
         data = Path(tmp) / "data"
-        make_hidden(effect, data, rng=seed)
+        make_hidden(effect, data, rng=seed, design=convention(conv))
         if effect == "none":
             res = check(data, rng=seed)
             base, added = res, None
         else:
             added = check(data, add=[effect], rng=seed)
             base = added.baseline
-    out = {"effect": effect, "seed": seed, "seconds": time.perf_counter() - started,
+    out = {"effect": effect, "seed": seed, "convention": conv, "seconds": time.perf_counter() - started,
            "base_flagged": base.flagged, "base_top": base.candidates[0].effect if base.candidates else None,
            "base_error": base.error, "base_gof": base.gof,
            "base_ranking": [(c.effect, round(c.delta_bic, 1)) for c in base.candidates]}
@@ -80,35 +89,90 @@ def run_one(job: tuple[str, int]) -> dict:
     return out
 
 
-def fmt(v: float | None, spec: str = ".3g") -> str:
-    return "—" if v is None else format(v, spec)
+def run_auto(job: tuple[tuple[str, ...], int]) -> dict:
+    """One dataset with several hidden effects through forward selection (``--auto``)."""
+    from forensics.check import check_auto
+    from forensics.fixtures.hidden import make_hidden
 
-
-def main(argv: list[str] | None = None) -> int:
-    from forensics.fixtures.hidden import CANDIDATES, EXTRA
-
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, default=10, help="seeds per candidate (default 10)")
-    parser.add_argument("--null", type=int, default=20, help="seeds with nothing hidden (default 20)")
-    parser.add_argument("--only", action="append", help="only this candidate (repeatable)")
-    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
-    parser.add_argument("--no-extra", action="store_true", help="only the seven candidates the issue names "
-                        "(default: also the further built-in candidates, e.g. dsnu)")
-    parser.add_argument("--json", help="also write every run's numbers to this file")
-    args = parser.parse_args(argv)
-    effects = args.only or list(CANDIDATES) + ([] if args.no_extra else list(EXTRA))
-    jobs = [(e, s) for e in effects for s in range(1, args.seeds + 1)] + [("none", s) for s in range(1, args.null + 1)]
+    combo, seed = job
     started = time.perf_counter()
-    with ProcessPoolExecutor(args.workers) as pool:
-        runs = list(pool.map(run_one, jobs))
+    with tempfile.TemporaryDirectory(prefix="sweep-auto-") as tmp:
+        data = Path(tmp) / "data"
+        make_hidden([] if combo == ("none",) else list(combo), data, rng=seed)
+        sel = check_auto(data, rng=seed)
+    hidden = set() if combo == ("none",) else set(combo)
+    first, last = sel.steps[0], sel.steps[-1]
+    exact = set(sel.added) == hidden
+    pixel_ok = last.error["pixel"] is not None and last.error["pixel"] <= 1.1
+    return {"combo": "+".join(combo), "seed": seed, "seconds": time.perf_counter() - started,
+            "added": sel.added, "stopped": sel.stopped, "reason": sel.reason, "base_flagged": first.flagged,
+            "final_flagged": last.flagged, "base_error": first.error, "final_error": last.error,
+            "base_gof": first.gof, "final_gof": last.gof, "exact": exact, "pixel_ok": pixel_ok,
+            "pass": exact and not last.flagged and pixel_ok,
+            "path": [(s.label, s.error["pixel"], s.flagged, [a.reason for a in s.rejected]) for s in sel.steps],
+            "rejected": [a.reason for a in sel.rejected]}
+
+
+def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_out: str | None) -> int:
+    """The combination sweep through forward selection: one Markdown table and the failing runs."""
+    import numpy as np
+
+    jobs = [(c, s) for c in combos for s in range(1, seeds + 1)]
+    started = time.perf_counter()
+    with ProcessPoolExecutor(workers) as pool:
+        runs = list(pool.map(run_auto, jobs))
     elapsed = time.perf_counter() - started
-    print(f"# Model-check sweep: {len(effects)} candidate(s) × {args.seeds} seeds + {args.null} null seeds "
-          f"({elapsed:.0f} s on {args.workers} worker(s))\n")
+    print(f"# Forward selection (--auto): {len(combos)} combination(s) × {seeds} seeds "
+          f"({elapsed:.0f} s on {workers} worker(s))\n")
+    print("| hidden effects | added exactly the hidden ones | ends with nothing flagged | final error.pixel ≤ 1.1 | "
+          "all three | error.pixel base → final (median) | variance | growth | median steps |")
+    print("|---|---|---|---|---|---|---|---|---|")
+
+    def med(rs: list[dict], which: str, key: str) -> str:
+        vals = [r[which][key] for r in rs if r[which][key] is not None]
+        return fmt(float(np.median(vals))) if vals else "—"
+
+    for c in combos:
+        rs = [r for r in runs if r["combo"] == "+".join(c)]
+        n = len(rs)
+        print(f"| {' + '.join(c)} | {sum(r['exact'] for r in rs)}/{n} | {sum(not r['final_flagged'] for r in rs)}/{n} | "
+              f"{sum(r['pixel_ok'] for r in rs)}/{n} | {sum(r['pass'] for r in rs)}/{n} | "
+              f"{med(rs, 'base_error', 'pixel')} → {med(rs, 'final_error', 'pixel')} | "
+              f"{med(rs, 'base_error', 'variance')} → {med(rs, 'final_error', 'variance')} | "
+              f"{med(rs, 'base_error', 'growth')} → {med(rs, 'final_error', 'growth')} | "
+              f"{np.median([len(r['path']) - 1 for r in rs]):g} |")
+    fails = [r for r in runs if not r["pass"]]
+    if fails:
+        print("\nRuns that failed a criterion:\n")
+        for r in fails:
+            path = " → ".join(f"{lab} (pixel {fmt(px)}, flagged {fl or '—'})" for lab, px, fl, _ in r["path"])
+            print(f"- {r['combo']}, seed {r['seed']}: {path}; stopped: {r['stopped']}")
+    print(f"\nmean time per dataset (generate + forward selection): {np.mean([r['seconds'] for r in runs]):.1f} s")
+    if json_out:
+        Path(json_out).write_text(json.dumps(runs, indent=1, default=float))
+    return 0
+
+
+def run_guarded(job: tuple[str, int, str]) -> dict:
+    """:func:`run_one`, a crash recorded as a failed run (a convention's data may break a step of the check)."""
+    try:
+        return run_one(job)
+    except Exception as exc:  # noqa: BLE001 — reported in the table, not hidden
+        return {"effect": job[0], "seed": job[1], "convention": job[2], "crashed": f"{type(exc).__name__}: {exc}",
+                "pass": False, "seconds": 0.0}
+
+
+def print_tables(runs: list[dict], effects: list[str]) -> None:
+    """One Markdown table of the criteria per hidden effect, then the runs that failed a criterion."""
+    import numpy as np
+
+    for r in runs:
+        if "crashed" in r:
+            print(f"- CRASHED: {r['effect']}, seed {r['seed']}: {r['crashed']}")
+    runs = [r for r in runs if "crashed" not in r]
     print("| hidden effect | flagged & ranked 1st | added: nothing flagged, all gof p ≥ 0.001 | effect criterion | "
           "criterion | base error (median) | added error (median) | median ΔBIC |")
     print("|---|---|---|---|---|---|---|---|")
-    import numpy as np
-
     for e in effects:
         rs = [r for r in runs if r["effect"] == e]
         if not rs:
@@ -150,6 +214,59 @@ def main(argv: list[str] | None = None) -> int:
                       f"{ {k: fmt(v) for k, v in r['add_gof'].items()} }, base error {fmt(r['base_error']['pixel'])} → "
                       f"{fmt(r['add_error']['pixel'])}, variance {fmt(r['add_error']['variance'])}, growth "
                       f"{fmt(r['add_error']['growth'])}")
+
+
+def fmt(v: float | None, spec: str = ".3g") -> str:
+    return "—" if v is None else format(v, spec)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from forensics.fixtures.hidden import CANDIDATES, CONVENTIONS, EXTRA, convention
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, default=10, help="seeds per candidate (default 10)")
+    parser.add_argument("--null", type=int, default=20, help="seeds with nothing hidden (default 20)")
+    parser.add_argument("--only", action="append", help="only this candidate (repeatable)")
+    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    parser.add_argument("--no-extra", action="store_true", help="only the seven candidates the issue names "
+                        "(default: also the further built-in candidates, e.g. dsnu)")
+    parser.add_argument("--json", help="also write every run's numbers to this file")
+    parser.add_argument("--combo", action="append", metavar="A,B[,C]",
+                        help="hide these effects together and run forward selection (--auto) instead (repeatable; "
+                             "'none' for nothing hidden)")
+    parser.add_argument("--conventions", metavar="NAME,…",
+                        help="run the sweep on data of each of these generator conventions (fixtures.hidden "
+                             "CONVENTIONS: " + ", ".join(CONVENTIONS) + "); one table per convention")
+    args = parser.parse_args(argv)
+    if args.combo:
+        combos = [tuple(x.strip() for x in c.split(",") if x.strip()) for c in args.combo]
+        return main_combos(combos, args.seeds, args.workers, args.json)
+    effects = args.only or list(CANDIDATES) + ([] if args.no_extra else list(EXTRA))
+    convs = [c.strip() for c in args.conventions.split(",") if c.strip()] if args.conventions else ["project"]
+    for c in convs:
+        convention(c)  # unknown names fail before any work
+    jobs = [(e, s, c) for c in convs for e in effects for s in range(1, args.seeds + 1)] + \
+        [("none", s, c) for c in convs for s in range(1, args.null + 1)]
+    started = time.perf_counter()
+    with ProcessPoolExecutor(args.workers) as pool:
+        runs = list(pool.map(run_guarded, jobs))
+    elapsed = time.perf_counter() - started
+    header = (f"# Model-check sweep: {len(effects)} candidate(s) × {args.seeds} seeds + {args.null} null seeds "
+              f"({elapsed:.0f} s on {args.workers} worker(s))")
+    if args.conventions:
+        print(header + f", conventions {', '.join(convs)}\n")
+        for conv in convs:
+            d = convention(conv)
+            print(f"## Convention {conv}: {d.bit_depth}-bit {d.shape[1]}×{d.shape[0]}, {len(d.ages)} epochs, black level "
+                  f"{d.black_level:g} DN, light pedestal {d.pedestal * d.level_scale:g} DN, read noise {d.read_noise:g} DN "
+                  f"({'also' if d.noise_on_stuck else 'not'} on stuck pixels), vignetting {d.vignetting:g}, stuck share "
+                  f"{d.rates[1] / sum(d.rates):.2g}, ISO gain {d.iso_gain}\n")
+            print_tables([r for r in runs if r["convention"] == conv], effects)
+    else:
+        print(header + "\n")
+        print_tables(runs, effects)
+    import numpy as np
+
     print(f"\nmean time per dataset (generate + checks): {np.mean([r['seconds'] for r in runs]):.1f} s")
     if args.json:
         Path(args.json).write_text(json.dumps(runs, indent=1, default=float))

@@ -22,18 +22,26 @@ def register(sub) -> None:
 
     check = command_parser(
         inner, "check", "fit the sensor model to a dataset, show where it fails and name the missing effect",
-        "forensics model check data/ --add nonlinearity --report report/",
+        "forensics model check data/ --add nonlinearity --report report/\n"
+        "  forensics model check data/ --auto --report report/   # add flagged effects one at a time",
         "Fit the base model (its effects are listed by 'forensics model effects') plus the --add effects to a dataset "
         "(images + manifest.csv with captured, exposure_s, iso, temperature_c; repeated frames per condition). "
         "Prints the fitted parameters with standard errors, the held-out error (1.0 = the noise floor measured "
         "from repeated frames), a table of checks, and the candidate effects ranked by predicted ΔBIC, flagged "
         "on strong evidence (ΔBIC > 10 and Holm-adjusted p < 0.01).  With --add, the base model is checked "
-        "too and the error shown before and after.")
+        "too and the error shown before and after.  With --auto, forward selection: starting from the base model "
+        "plus any --add effects, add the top flagged candidate, refit, and repeat until nothing is flagged (an "
+        "addition that lowers no error and raises no failing gof p is not kept; the next flagged one is tried "
+        "once); the path base → +A → +B … is printed as a ladder with the error and gof at each step.")
     check.add_argument("data", help="dataset folder")
     check.add_argument("--add", action="append", default=[], metavar="EFFECT",
                        help="add an effect: a name from 'forensics model effects', module:Class or "
                             "path/to/file.py:Class (repeatable)")
     check.add_argument("--seed", type=int, default=0, help="seed of the Monte-Carlo simulations (default 0)")
+    check.add_argument("--auto", action="store_true",
+                       help="forward selection: add flagged candidates one at a time until nothing is flagged")
+    check.add_argument("--max-steps", type=int, default=None, metavar="N",
+                       help="with --auto: add at most N effects (default 5)")
     add_output_options(check)
     check.set_defaults(handler=run_check)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
@@ -80,6 +88,12 @@ def run_check(args: argparse.Namespace) -> int:
 
     if args.report:
         refuse_existing(args.report, args.force)
+    if args.auto:
+        return _run_auto(args)
+    if args.max_steps is not None:
+        from forensics._shared.errors import UsageError
+
+        raise UsageError("--max-steps needs --auto")
     info(args, f"forensics model check: reading {args.data} …")
     result = check(args.data, add=args.add, rng=args.seed, progress=progress_for(args))
     if args.report:
@@ -87,6 +101,42 @@ def run_check(args: argparse.Namespace) -> int:
         info(args, f"report: {path}")
     emit(args, lambda: format_check(result), result.to_dict)
     return 0
+
+
+def _run_auto(args: argparse.Namespace) -> int:
+    from forensics.check import check_auto
+    from forensics.report.check import selection_report
+
+    info(args, f"forensics model check --auto: reading {args.data} …")
+    sel = check_auto(args.data, add=args.add, rng=args.seed, max_steps=5 if args.max_steps is None else args.max_steps,
+                     progress=progress_for(args))
+    if args.report:
+        path = selection_report(sel, title=f"Model check (--auto): {args.data}").write(args.report, force=args.force)
+        info(args, f"report: {path}")
+    emit(args, lambda: format_check(sel.result) + "\n\n" + format_ladder(sel), sel.to_dict)
+    return 0
+
+
+def format_ladder(sel: Any) -> str:
+    """The forward-selection path of a :class:`forensics.check.SelectionResult`, one line per step."""
+    width = max(12, *(len(s.label) for s in sel.steps))
+    lines = ["Forward selection (--auto): each step adds the top flagged candidate and refits",
+             (f"  {'step':<{width}}  {'error: pixel':>12} {'variance':>9} {'growth':>8}   "
+              f"{'gof p: pixel':>12} {'variance':>9} {'growth':>8} {'spatial':>8}   flagged")]
+    for s in sel.steps:
+        e, g = s.error, s.gof
+        lines.append(f"  {s.label:<{width}}  {_g(e['pixel']):>12} {_g(e['variance']):>9} {_g(e['growth']):>8}   "
+                     f"{_p(g['pixel']):>12} {_p(g['variance']):>9} {_p(g['growth']):>8} {_p(g['spatial']):>8}   "
+                     f"{', '.join(s.flagged) or '—'}")
+        for a in s.rejected:
+            lines.append(f"  {'':<{width}}  (tried first, not kept: {a.reason})")
+    for a in sel.rejected:
+        lines.append(f"  (tried, not kept: {a.reason})")
+    lines.append(f"Stopped: {sel.stopped}.")
+    if sel.added:
+        lines.append("Same model by hand: forensics model check " + str(sel.result.data["folder"]) + " "
+                     + " ".join(f"--add {a}" for a in [*_added(sel.steps[0].result), *sel.added]))
+    return "\n".join(lines)
 
 
 def _g(v: Any, spec: str = ".3g") -> str:
@@ -154,6 +204,11 @@ def format_check(result: Any) -> str:
                      + " ".join(f"--add {a}" for a in [*_added(result), flagged[0]]))
     else:
         lines.append("Nothing flagged: no candidate effect is supported strongly by these data.")
+    structure = getattr(result, "structure", None)
+    if structure is not None and structure.named is not None:
+        hint = (" (a flagged candidate may explain part of it: check again with it added)" if flagged else
+                " (no candidate explains it: a user's own effect, --add file.py:Class, may)")
+        lines.append(f"Unexplained structure: {structure.named.summary()}{hint}")
     if result.warnings:
         lines += ["", "Warnings"] + [f"  - {w}" for w in result.warnings]
     return "\n".join(lines)

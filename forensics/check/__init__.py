@@ -18,8 +18,13 @@ The stages, one module each, data flowing one way:
 ``gof``           held-out error per pixel class and each channel's goodness of fit
 ``diagnosis``     ``signatures`` and ``scoretests`` of the candidates, ranking and flags; ``design``
                   warnings
+``structure``     residual structure no fitted effect explains: row, column and radial profiles and
+                  covariate trends of the residual, each tested against noise; the strongest named
+                  (:func:`residual_structure` → :class:`StructureResult`)
 ``result``        the result dataclasses (``to_dict()`` for ``--json``)
 ``run``           :func:`check`, :func:`run_check`, :func:`base_model`, :func:`candidate_names`
+``select``        forward selection of several effects: :func:`check_auto`, :func:`forward_select` →
+                  :class:`SelectionResult` (the path base → +A → +B …)
 
 The measurements are reduced to four *channels* of statistics — pixel, variance, growth, spatial — and
 every effect acts on one or more of them according to its :class:`~forensics.sensor.model.Stage`, so
@@ -38,15 +43,21 @@ from forensics.check.result import (
     ParamEstimate,
     PatternEstimate,
     PlotData,
+    StructureResult,
+    StructureTest,
 )
 from forensics.check.run import base_model, candidate_names, check, resolve_effects, run_check
 from forensics.check.scene import KERNEL, KERNEL_VAR, loo_quadratic_kernel, scene_estimate
+from forensics.check.select import Attempt, SelectionResult, Step, check_auto, forward_select
+from forensics.check.structure import residual_structure
 from forensics.check.signatures import Signature
 
 __all__ = [
     "check", "run_check", "base_model", "candidate_names", "resolve_effects",
+    "check_auto", "forward_select", "SelectionResult", "Step", "Attempt",
     "Measurements", "Group", "load_measurements", "Evidence", "FittedModel", "fit_model", "diagnose",
     "CheckResult", "Candidate", "ChannelTest", "CheckRow", "ParamEstimate", "PatternEstimate", "PlotData",
     "Signature", "CLASSES", "CHANNELS", "FLAG_DBIC", "FLAG_P",
+    "residual_structure", "StructureResult", "StructureTest",
     "KERNEL", "KERNEL_VAR", "loo_quadratic_kernel", "scene_estimate",
 ]

@@ -84,6 +84,54 @@ class Candidate:
 
 
 @dataclass
+class StructureTest:
+    """One test of the residual for structure (see :mod:`forensics.check.structure`)."""
+
+    kind: str  #: ``column``, ``row``, ``radial``, ``trend`` or ``misfit trend``
+    label: str  #: in words, e.g. "column-wise pattern"
+    statistic: float  #: whitened χ² (profiles) or t of the slope (trends)
+    df: float
+    p: float
+    p_holm: float  #: Holm-adjusted over every structure test run
+    size: float  #: profiles: rms of the bin means in the residual, noise removed; trends: slope × range
+    unit: str
+    pattern_rms: float | None = None  #: profiles: rms of a bin-to-bin independent pattern leaving that residual
+    share: float | None = None  #: profiles: share of the residual variance (DN²) in the bin means
+    covariate: str | None = None
+    slope: float | None = None
+    slope_se: float | None = None
+    sees: str = ""  #: what the test can and cannot see
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def summary(self) -> str:
+        """E.g. "column-wise pattern, 3.1 DN rms (p = 1e-12)"."""
+        if self.kind in ("column", "row", "radial"):
+            size = self.pattern_rms if self.pattern_rms is not None else self.size
+            what = f"{size:.2g} DN rms"
+        else:
+            what = f"slope {self.slope:.3g} ± {self.slope_se:.2g} ({self.size:.3g} {self.unit})"
+        p = "p < 1e-300" if self.p_holm < 1e-300 else f"p = {self.p_holm:.2g}"
+        return f"{self.label}, {what} ({p})"
+
+
+@dataclass
+class StructureResult:
+    """Residual structure no fitted effect explains: every test, and the strongest one named (or None)."""
+
+    tests: list[StructureTest]
+    named: StructureTest | None
+    notes: list[str] = dataclasses.field(default_factory=list)
+    plots: dict[str, Any] | None = None  #: profiles and trends for the report (not serialised)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"named": None if self.named is None else self.named.to_dict(),
+                "summary": None if self.named is None else self.named.summary(),
+                "tests": [t.to_dict() for t in self.tests], "notes": self.notes}
+
+
+@dataclass
 class PlotData:
     """Arrays kept for the report (not serialised)."""
 
@@ -112,6 +160,7 @@ class CheckResult:
     data: dict[str, Any]
     plots: PlotData | None = None
     baseline: "CheckResult | None" = None
+    structure: StructureResult | None = None
 
     @property
     def flagged(self) -> list[str]:
@@ -122,6 +171,8 @@ class CheckResult:
                "candidates": [c.to_dict() for c in self.candidates],
                "params": [p.to_dict() for p in self.params], "patterns": [p.to_dict() for p in self.patterns],
                "checks": [c.to_dict() for c in self.checks], "warnings": self.warnings, "data": self.data}
+        if self.structure is not None:
+            out["structure"] = self.structure.to_dict()
         if self.baseline is not None:
             out["before"] = {"effects": self.baseline.effects, "error": self.baseline.error,
                              "gof": self.baseline.gof, "flagged": self.baseline.flagged}

@@ -22,6 +22,7 @@ from forensics.check.gof import class_errors, covariate_checks, growth_gof, pixe
 from forensics.check.measurements import Measurements, load_measurements
 from forensics.check.result import CheckResult, CheckRow, PlotData
 from forensics.check.scene import KERNEL_VAR
+from forensics.check.structure import residual_structure
 from forensics.io.dataset import Dataset
 from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.sensor.model import EFFECTS, Effect, make_effect
@@ -73,6 +74,7 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
         warnings=warn,
         data=_data_summary(ev, fitted),
         plots=_plot_data(ev, fitted, consistency, covariates, ripley),
+        structure=residual_structure(ev, fitted),
     )
 
 

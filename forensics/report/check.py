@@ -11,6 +11,7 @@ import numpy as np
 from forensics.check.classes import CHANNELS, CLASSES
 from forensics.check.diagnosis import FLAG_DBIC
 from forensics.check.result import CheckResult
+from forensics.check.select import SelectionResult
 from forensics.report.html import Report, new_figure
 from forensics.sensor.catalogue import PARTIAL, STUCK
 
@@ -30,16 +31,77 @@ def check_report(result: CheckResult, title: str = "Model check") -> Report:
     against time with the model's band, Ripley's L with its envelope; with a baseline, before and after side by
     side."""
     rep = Report(title)
+    _check_sections(rep, result)
+    return rep
+
+
+def _check_sections(rep: Report, result: CheckResult) -> None:
+    """Every section of :func:`check_report`, added to ``rep``."""
     runs = [("before", result.baseline), ("after", result)] if result.baseline is not None else [("model", result)]
     _summary(rep, result, runs)
     _numbers(rep, result, runs)
     _residual_maps(rep, result, runs)
     _covariates(rep, result, runs)
+    structure_section(rep, result, runs)
     _variance(rep, result, runs)
     _counts(rep, result, runs)
     _ripley(rep, result, runs)
     _checks(rep, result, runs)
+
+
+def selection_report(selection: SelectionResult, title: str = "Model check: forward selection") -> Report:
+    """An HTML report of forward selection (``--auto``): the path as a table and a ladder plot (error and
+    goodness of fit at every step), then every section of :func:`check_report` for the final model (before:
+    the starting model)."""
+    rep = Report(title)
+    rep.heading("Forward selection")
+    rep.text("Path: " + " → ".join(s.label for s in selection.steps) + f". Stopped: {selection.stopped}.")
+    rows = []
+    for s in selection.steps:
+        rows.append([s.label, *[_num(s.error[k]) for k in ("pixel", "variance", "growth")],
+                     *[_num(s.gof[k]) for k in CHANNELS], ", ".join(s.flagged) or "—",
+                     "; ".join(a.reason for a in s.rejected) or ""])
+    rep.table(["step", "error.pixel", "error.variance", "error.growth", *[f"gof.{k} (p)" for k in CHANNELS],
+               "flagged", "tried, not kept"], rows)
+    for a in selection.rejected:
+        rep.text(f"Tried and not kept: {a.reason}", note=True)
+    _ladder(rep, selection)
+    rep.heading(f"Final model: {' + '.join(selection.result.effects)}")
+    _check_sections(rep, selection.result)
     return rep
+
+
+def _ladder(rep: Report, selection: SelectionResult) -> None:
+    """Error (log scale) and goodness-of-fit p-values (log scale) at every step of the path."""
+    steps = selection.steps
+    x = np.arange(len(steps))
+    labels = [s.label for s in steps]
+    fig, axes = new_figure(4.0 + 1.2 * len(steps), 3.4, ncols=2)
+    ax = axes[0]
+    for key, colour, label in (("pixel", "C0", "pixel (1 = noise floor)"), ("variance", "C1", "variance (RMS ln)"),
+                               ("growth", "C2", "growth (deviance/df)")):
+        y = np.array([np.nan if s.error[key] is None else s.error[key] for s in steps], dtype=float)
+        if np.any(np.isfinite(y) & (y > 0)):
+            ax.plot(x, np.where(y > 0, y, np.nan), "o-", color=colour, label=label)
+    ax.axhline(1.0, color="k", lw=0.6, ls=":")
+    ax.set_yscale("log")
+    ax.set_xticks(x, labels, rotation=20, fontsize=8)
+    _label(ax, "step", "held-out error", "error at each step")
+    ax.legend(fontsize=7)
+    ax = axes[1]
+    floor = 1e-16
+    for k, key in enumerate(CHANNELS):
+        y = np.array([np.nan if s.gof[key] is None else max(s.gof[key], floor) for s in steps], dtype=float)
+        ax.plot(x, y, "o-", color=f"C{k}", label=key)
+    ax.axhline(0.01, color="k", lw=0.6, ls=":")
+    ax.set_yscale("log")
+    ax.set_ylim(floor / 3, 2.0)
+    ax.set_xticks(x, labels, rotation=20, fontsize=8)
+    _label(ax, "step", "goodness-of-fit p", "goodness of fit at each step")
+    ax.legend(fontsize=7)
+    rep.figure(fig, "ladder", "The forward-selection path: each step adds the top flagged candidate and refits. "
+               "Left: held-out error per channel (log scale; dotted: 1 = the pixel channel's noise floor). Right: "
+               "goodness-of-fit p-values (log scale, floored at 1e-16; dotted: 0.01).")
 
 
 def _summary(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:
@@ -143,6 +205,81 @@ def _covariates(rep: Report, result: CheckResult, runs: list[tuple[str, CheckRes
     axes[0].legend(fontsize=6)
     rep.figure(fig, "covariates", "Held-out residuals against every covariate (mean ± 95 % per bin), per pixel "
                "class: a missing effect shows as a trend with the covariates it depends on.")
+
+
+def structure_section(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]] | None = None) -> None:
+    """Residual structure no fitted effect explains: the named structure, every test in a table, the row,
+    column and radial profiles with their null band, and the per-condition trends."""
+    runs = runs or [("model", result)]
+    runs = [(name, r) for name, r in runs if r.structure is not None and r.structure.tests]
+    if not runs:
+        return
+    rep.heading("Where the model fails: structure nobody's catalogue covers")
+    for name, r in runs:
+        st = r.structure
+        rep.text(f"{name}: " + (f"unexplained structure — {st.named.summary()}." if st.named is not None else
+                                "no structure named (every Holm-adjusted p ≥ 0.001).") + "".join(f" {n}." for n in st.notes))
+        rep.table(["test", "statistic", "df", "p", "Holm p", "size", "unit", "pattern rms (DN)", "share"],
+                  [[t.label, t.statistic, t.df, t.p, t.p_holm, t.size, t.unit, _num(t.pattern_rms), _num(t.share)]
+                   for t in st.tests], caption=f"{name}: structure tests (what each can see: see below)")
+    sees = {t.kind: t.sees for _, r in runs for t in r.structure.tests}
+    rep.text(" ".join(f"{k}: {v}." for k, v in sees.items()), note=True)
+    structure_profiles(rep, runs)
+    structure_trends(rep, runs)
+
+
+def structure_profiles(rep: Report, runs: list[tuple[str, CheckResult]]) -> None:
+    """Column, row and radial profiles of the residual with their ±2σ null band, one row of panels per run."""
+    kinds = [("column", "column (px)"), ("row", "row (px)"), ("radial", "distance from the frame centre (px)")]
+    fig, axes = new_figure(4.0 * len(kinds), 3.0 * len(runs), ncols=len(kinds), nrows=len(runs))
+    axes = np.asarray(axes).reshape(len(runs), len(kinds))
+    for i, (name, r) in enumerate(runs):
+        profiles = (r.structure.plots or {}).get("profiles", {})
+        for j, (kind, xlabel) in enumerate(kinds):
+            ax = axes[i, j]
+            pl = profiles.get(kind)
+            if pl is None:
+                ax.set_axis_off()
+                continue
+            band = 2 * pl["null_sd"]
+            ax.fill_between(pl["x"], -band, band, color="0.8", step="mid", label="±2σ of noise")
+            ax.plot(pl["x"], pl["profile"], color="C3", lw=0.8, drawstyle="steps-mid", label="mean residual")
+            ax.axhline(0, color="k", lw=0.5)
+            t = next((t for t in r.structure.tests if t.kind == kind), None)
+            title = f"{name}: {kind}" + ("" if t is None else f" (Holm p = {t.p_holm:.2g})")
+            _label(ax, xlabel, "mean residual (DN)", title)
+    axes[0, 0].legend(fontsize=6)
+    rep.figure(fig, "structure_profiles", "The residual (both halves, normal pixels, mean over conditions) averaged "
+               "per column, per row and per 1-pixel ring of distance from the frame centre, with the ±2σ band pure "
+               "noise would fill. Smooth profiles are removed by the scene estimate and cannot show here.")
+
+
+def structure_trends(rep: Report, runs: list[tuple[str, CheckResult]]) -> None:
+    """Per-condition mean residual and held-out error² against each covariate, with the fitted line."""
+    keys = sorted({k for _, r in runs for k in (r.structure.plots or {}).get("trends", {})})
+    if not keys:
+        return
+    ncols = min(len(keys), 5)
+    nrows = math.ceil(len(keys) / ncols)
+    fig, axes = new_figure(3.0 * ncols, 2.8 * nrows, ncols=ncols, nrows=nrows)
+    axes = np.atleast_1d(axes).ravel()
+    for ax, key in zip(axes, keys):
+        for k, (name, r) in enumerate(runs):
+            tr = r.structure.plots["trends"].get(key)
+            if tr is None:
+                continue
+            x = np.asarray(tr["x"])
+            ax.plot(x, tr["y"], "o", ms=3, color=f"C{k}", label=name)
+            xs = np.array([x.min(), x.max()])
+            ax.plot(xs, tr["intercept"] + tr["slope"] * xs, color=f"C{k}", lw=0.8)
+        kind, cov = key.split(": ", 1)
+        _label(ax, cov, "mean residual (DN)" if kind == "trend" else "held-out error²", kind)
+        ax.tick_params(labelsize=7)
+    for ax in axes[len(keys):]:
+        ax.set_axis_off()
+    axes[0].legend(fontsize=6)
+    rep.figure(fig, "structure_trends", "Per repeated condition: the mean residual of normal pixels (trend) and "
+               "their held-out error² (misfit trend) against each covariate, with the least-squares line.")
 
 
 def _variance(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]]) -> None:

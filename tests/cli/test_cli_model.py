@@ -88,3 +88,44 @@ def test_bad_input_exit_codes(tmp_path, data, capsys):
     assert main(["model", "check", str(data), "--add", "offset"]) == 2  # already in the model
     err = capsys.readouterr().err
     assert "no_such_effect" in err and "already in the model" in err
+
+
+# ------------------------------------------------------------------------------------------- --auto
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "pair"
+    assert main(["simulate", "hidden", "prnu,dark_current", str(out), "--seed", "1", "--quiet"]) == 0
+    return out
+
+
+def test_simulate_hidden_takes_several_effects(pair, tmp_path, capsys):
+    truth = json.loads((pair / "truth.json").read_text())
+    assert truth["hidden_effects"] == ["prnu", "dark_current"] and truth["hidden"] == "prnu+dark_current"
+    assert main(["simulate", "hidden", "prnu", "dark_current", str(tmp_path / "rep"), "--seed", "1"]) == 0
+    assert "with prnu + dark_current hidden" in capsys.readouterr().out
+    assert json.loads((tmp_path / "rep" / "truth.json").read_text())["hidden_effects"] == ["prnu", "dark_current"]
+
+
+def test_check_auto_json_and_report(pair, tmp_path, capsys):
+    report = tmp_path / "report"
+    assert main(["model", "check", str(pair), "--auto", "--json", "--seed", "1", "--report", str(report)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [p["step"] for p in out["path"]][0] == "base"
+    assert sorted(out["added"]) == ["dark_current", "prnu"] and out["stopped"] == "nothing flagged"
+    assert {"effects", "error", "gof", "candidates", "before"} <= set(out)
+    assert all({"error", "gof", "flagged", "top"} <= set(p) for p in out["path"])
+    assert out["error"]["pixel"] <= 1.1 and not [c for c in out["candidates"] if c["flagged"]]
+    names = {p.name for p in report.iterdir()}
+    assert {"index.html", "ladder.png", "residual_maps.png"} <= names
+    assert "Forward selection" in (report / "index.html").read_text()
+
+
+def test_check_auto_ladder_and_max_steps(pair, capsys):
+    assert main(["model", "check", str(pair), "--auto", "--max-steps", "1", "--seed", "1", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "Forward selection (--auto)" in text and "Stopped: max steps (1) reached" in text
+    ladder = text[text.index("Forward selection (--auto)"):].splitlines()
+    assert ladder[2].lstrip().startswith("base") and ladder[3].lstrip().startswith("+")
+    assert "Same model by hand: forensics model check" in text
+    assert main(["model", "check", str(pair), "--max-steps", "2"]) == 2
+    assert "--max-steps needs --auto" in capsys.readouterr().err

@@ -1,0 +1,252 @@
+"""Several effects at once: forward selection from the base model.
+
+:func:`forward_select` starts from a model (the base model plus any effects the user added), checks it,
+adds the top *flagged* candidate (ΔBIC > 10 and Holm p < 0.01), checks again, and repeats until nothing is
+flagged.  Every step is checked against the same :class:`~forensics.check.evidence.Evidence` (built once from
+the data), so the steps compare like with like.  The path — ``base → +A → +B …`` with the error and the
+goodness of fit at each step — is a :class:`SelectionResult`.
+
+An addition is kept only if it improves the fit: some channel's error falls beyond its noise
+(:data:`ERROR_TOL`) or some failing goodness of fit recovers (:data:`GOF_RISE`).  If the top candidate does
+not, the next flagged one is tried (once per model); if that fails too, the path stops and says why.  :func:`check_auto` is the convenience entry point from a dataset.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from forensics._shared.errors import ForensicsError, UsageError
+from forensics._shared.progress import Progress, no_progress
+from forensics._shared.rng import RngLike
+from forensics.check.evidence import Evidence
+from forensics.check.measurements import Measurements, load_measurements
+from forensics.check.result import CheckResult
+from forensics.check.run import base_model, resolve_effects, run_check
+from forensics.io.dataset import Dataset
+from forensics.sensor.model import Effect
+
+#: An error channel "falls beyond its noise" when it drops by more than this fraction of its value
+#: (pixel: in units of the noise floor its sampling spread over ~10⁴ pixel means is well under 1 %;
+#: variance and growth are coarser, binned or counted, statistics).
+ERROR_TOL: dict[str, float] = {"pixel": 0.02, "variance": 0.10, "growth": 0.10}
+#: A goodness of fit "recovers" when a p-value below :data:`GOF_FAIL` rises by at least this factor (the
+#: spatial channel's Monte-Carlo p cannot go below 1/(n_sim + 1) = 0.005, so a recovery reads 0.005 → ≥ 0.05).
+GOF_RISE = 10.0
+GOF_FAIL = 0.05
+
+NOTHING_FLAGGED = "nothing flagged"
+MAX_STEPS = "max steps"
+NO_IMPROVEMENT = "no improvement"
+
+
+@dataclass
+class Attempt:
+    """A candidate tried at a step and not kept, and why."""
+
+    effect: str
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class Step:
+    """One model on the path: its effects, the check's summary, and what was tried to get here.
+
+    ``result`` (the full :class:`CheckResult`, for the report) is not serialised.
+    """
+
+    effects: list[str]
+    added: str | None  #: the effect this step added (None for the starting model)
+    error: dict[str, Any]
+    gof: dict[str, float | None]
+    flagged: list[str]
+    top: dict[str, Any] | None  #: the top-ranked candidate: effect, delta_bic, p, flagged
+    rejected: list[Attempt] = field(default_factory=list)  #: tried before this step and not kept
+    result: CheckResult | None = field(default=None, repr=False)
+
+    @property
+    def label(self) -> str:
+        return "base" if self.added is None else f"+{self.added}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"step": self.label, "added": self.added, "effects": self.effects, "error": self.error,
+                "gof": self.gof, "flagged": self.flagged, "top": self.top,
+                "rejected": [a.to_dict() for a in self.rejected]}
+
+
+@dataclass
+class SelectionResult:
+    """The forward-selection path and why it stopped.
+
+    ``stopped`` is the sentence shown to the user; ``reason`` its code (:data:`NOTHING_FLAGGED`,
+    :data:`MAX_STEPS` or :data:`NO_IMPROVEMENT`).  :attr:`result` is the final model's check, whose
+    ``baseline`` is the starting model's check when anything was added.
+    """
+
+    steps: list[Step]
+    stopped: str
+    reason: str
+    rejected: list[Attempt] = field(default_factory=list)  #: tried after the last step and not kept
+
+    @property
+    def result(self) -> CheckResult:
+        return self.steps[-1].result
+
+    @property
+    def added(self) -> list[str]:
+        return [s.added for s in self.steps if s.added is not None]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The final check's keys plus ``path`` (one object per step), ``added``, ``stopped`` and ``reason``."""
+        out = self.result.to_dict() if self.result is not None else {}
+        out.update({"path": [s.to_dict() for s in self.steps], "added": self.added, "stopped": self.stopped,
+                    "reason": self.reason, "rejected": [a.to_dict() for a in self.rejected]})
+        return out
+
+
+def _top(result: CheckResult) -> dict[str, Any] | None:
+    if not result.candidates:
+        return None
+    c = result.candidates[0]
+    return {"effect": c.effect, "delta_bic": c.delta_bic, "p": c.p, "flagged": c.flagged}
+
+
+def make_step(result: CheckResult, added: str | None, rejected: Sequence[Attempt] = ()) -> Step:
+    """The summary of one check on the path."""
+    return Step(effects=list(result.effects), added=added, error=result.error, gof=result.gof,
+                flagged=result.flagged, top=_top(result), rejected=list(rejected), result=result)
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def improvement(before: CheckResult, after: CheckResult) -> str | None:
+    """What improved from ``before`` to ``after`` (a short phrase), or None if nothing did beyond its noise."""
+    pairs = [(f"error.{key}", before.error.get(key), after.error.get(key), tol) for key, tol in ERROR_TOL.items()]
+    pairs += [(f"error.classes.{cls}", b, (after.error.get("classes") or {}).get(cls), ERROR_TOL["pixel"])
+              for cls, b in (before.error.get("classes") or {}).items()]  # error.pixel is the worst class's
+    for label, b, a, tol in pairs:
+        if _finite(b) and _finite(a) and a < (1.0 - tol) * b:
+            return f"{label} {b:.3g} → {a:.3g}"
+    for key, b in before.gof.items():
+        a = after.gof.get(key)
+        if _finite(b) and _finite(a) and b < GOF_FAIL and a >= GOF_RISE * max(b, 1e-300):
+            return f"gof.{key} {b:.2g} → {a:.2g}"
+    return None
+
+
+def _problem(after: CheckResult) -> str | None:
+    """A fit that cannot be scored: a non-finite error where the model has one."""
+    bad = [k for k in ERROR_TOL if after.error.get(k) is not None and not _finite(after.error[k])]
+    return f"the fit gave a non-finite error.{bad[0]}" if bad else None
+
+
+def _try(ev: Evidence, effects: list[Effect], current: CheckResult, name: str) -> tuple[CheckResult | None, str]:
+    """Fit ``effects`` + ``name``; the new check if it improves on ``current``, else None and why not."""
+    try:
+        new = run_check(ev, [*effects, *resolve_effects([name])])
+    except (ForensicsError, ArithmeticError, ValueError, RuntimeError) as exc:  # the fit reports a problem
+        return None, f"adding {name} failed: {exc}"
+    problem = _problem(new)
+    if problem:
+        return None, f"adding {name}: {problem}"
+    if improvement(current, new) is None:
+        return None, f"adding {name} did not lower the error or raise a failing gof p beyond its noise"
+    return new, ""
+
+
+def forward_select(ev: Evidence, start_effects: Sequence[Effect], max_steps: int = 5,
+                   start: CheckResult | None = None) -> SelectionResult:
+    """Add the top flagged candidate and refit, until nothing is flagged.
+
+    Parameters
+    ----------
+    ev
+        Evidence built once from the data; every step is fitted to it.
+    start_effects
+        The starting model (usually :func:`~forensics.check.run.base_model` plus the user's ``--add``);
+        not changed.
+    max_steps
+        At most this many effects are added.
+    start
+        The starting model's check, if already computed (``run_check(ev, start_effects)``).
+
+    Returns
+    -------
+    SelectionResult
+        The path (first step: the starting model), and why it stopped.  At each step the flagged candidates
+        are tried in rank order; one is kept if it improves the fit (:func:`improvement`); at most two are
+        tried per model (a candidate not kept may be tried again once another one has been added).  Every
+        kept step adds an effect, so the path ends after at most ``max_steps`` additions.
+    """
+    if max_steps < 0:
+        raise UsageError(f"max_steps must be ≥ 0, not {max_steps}")
+    effects = list(start_effects)
+    current = start if start is not None else run_check(ev, effects)
+    steps = [make_step(current, None)]
+    refused: list[Attempt] = []
+    while True:
+        if not current.flagged:
+            return _done(steps, refused, NOTHING_FLAGGED, "nothing flagged")
+        if len(steps) - 1 >= max_steps:
+            return _done(steps, refused, MAX_STEPS, f"max steps ({max_steps}) reached; still flagged: "
+                         + ", ".join(current.flagged))
+        for name in current.flagged[:2]:  # the top flagged candidate, else the next one
+            new, why = _try(ev, effects, current, name)
+            if new is None:
+                refused.append(Attempt(name, why))
+                continue
+            effects.append(resolve_effects([name])[0])
+            new.baseline = steps[0].result
+            steps.append(make_step(new, name, refused))
+            refused = []  # the model changed: a candidate not kept before may be tried again
+            current = new
+            break
+        else:
+            return _done(steps, refused, NO_IMPROVEMENT, "; ".join(a.reason for a in refused[-2:]))
+
+
+def _done(steps: list[Step], refused: list[Attempt], reason: str, stopped: str) -> SelectionResult:
+    return SelectionResult(steps=steps, stopped=stopped, reason=reason, rejected=refused)
+
+
+def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
+               max_steps: int = 5, n_sim: int = 199, progress: Progress = no_progress) -> SelectionResult:
+    """Forward selection on a dataset: the base model plus ``add``, then flagged candidates one at a time.
+
+    Parameters
+    ----------
+    data
+        Dataset (or its folder, or prepared :class:`Measurements`).
+    add
+        Effects the starting model has on top of the base model (names, ``module:Class``, ``file.py:Class``
+        or instances, as in :func:`~forensics.check.run.check`).
+    rng
+        Generator or integer seed of the Monte-Carlo simulations (the same streams at every step).
+    max_steps
+        At most this many candidates are added.
+    n_sim
+        Monte-Carlo simulations of the fitted arrival model.
+    progress
+        Progress callable for reading the frames.
+
+    Returns
+    -------
+    SelectionResult
+    """
+    extra = resolve_effects(add)
+    names = [e.key for e in base_model()]
+    for e in extra:
+        if e.key in names:
+            raise UsageError(f"the effect '{e.key}' is already in the model")
+        names.append(e.key)
+    meas = data if isinstance(data, Measurements) else load_measurements(data, progress=progress)
+    ev = Evidence(meas, rng=rng, n_sim=n_sim)
+    return forward_select(ev, [*base_model(), *extra], max_steps=max_steps)
