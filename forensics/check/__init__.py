@@ -30,34 +30,26 @@ The measurements are reduced to four *channels* of statistics — pixel, varianc
 every effect acts on one or more of them according to its :class:`~forensics.sensor.model.Stage`, so
 nothing here depends on an effect's name.  The report is :func:`forensics.report.check.check_report`.
 """
-from forensics.check.classes import CHANNELS, CLASSES
-from forensics.check.diagnosis import FLAG_DBIC, FLAG_P, diagnose
-from forensics.check.evidence import Evidence
-from forensics.check.fit import FittedModel, fit_model
-from forensics.check.measurements import Group, Measurements, load_measurements
-from forensics.check.result import (
-    Candidate,
-    ChannelTest,
-    CheckResult,
-    CheckRow,
-    ParamEstimate,
-    PatternEstimate,
-    PlotData,
-    StructureResult,
-    StructureTest,
-)
-from forensics.check.run import base_model, candidate_names, check, resolve_effects, run_check
-from forensics.check.scene import KERNEL, KERNEL_VAR, loo_quadratic_kernel, scene_estimate
-from forensics.check.select import Attempt, SelectionResult, Step, check_auto, forward_select
-from forensics.check.structure import residual_structure
-from forensics.check.signatures import Signature
+import lazy_loader as _lazy
 
-__all__ = [
-    "check", "run_check", "base_model", "candidate_names", "resolve_effects",
-    "check_auto", "forward_select", "SelectionResult", "Step", "Attempt",
-    "Measurements", "Group", "load_measurements", "Evidence", "FittedModel", "fit_model", "diagnose",
-    "CheckResult", "Candidate", "ChannelTest", "CheckRow", "ParamEstimate", "PatternEstimate", "PlotData",
-    "Signature", "CLASSES", "CHANNELS", "FLAG_DBIC", "FLAG_P",
-    "residual_structure", "StructureResult", "StructureTest",
-    "KERNEL", "KERNEL_VAR", "loo_quadratic_kernel", "scene_estimate",
-]
+# Public names load their module on first use (as in scikit-image), so that importing one module of
+# this package does not import the whole domain.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "classes": ["CHANNELS", "CLASSES"],
+        "diagnosis": ["FLAG_DBIC", "FLAG_P", "diagnose"],
+        "evidence": ["Evidence"],
+        "fit": ["FittedModel", "fit_model"],
+        "measurements": ["Group", "Measurements", "load_measurements"],
+        "result": [
+            "Candidate", "ChannelTest", "CheckResult", "CheckRow", "ParamEstimate", "PatternEstimate", "PlotData",
+            "StructureResult", "StructureTest",
+        ],
+        "run": ["base_model", "candidate_names", "check", "resolve_effects", "run_check"],
+        "scene": ["KERNEL", "KERNEL_VAR", "loo_quadratic_kernel", "scene_estimate"],
+        "select": ["Attempt", "SelectionResult", "Step", "check_auto", "forward_select"],
+        "structure": ["residual_structure"],
+        "signatures": ["Signature"],
+    },
+)

@@ -14,7 +14,7 @@ def test_fingerprint_does_not_load_the_same_device_statistics():
 
 def test_every_public_name_resolves():
     code = ("import importlib\n"
-            "for pkg in ('io', 'sensor', 'prnu', 'defects', 'stats', 'report', 'validate', 'demo', '_shared'):\n"
+            "for pkg in ('io', 'sensor', 'prnu', 'defects', 'stats', 'check', 'report', 'validate', 'demo', '_shared'):\n"
             "    m = importlib.import_module('forensics.' + pkg)\n"
             "    missing = [n for n in m.__all__ if getattr(m, n, None) is None]\n"
             "    assert not missing, (pkg, missing)\n")
