@@ -110,6 +110,19 @@ def _data_summary(ev: Evidence, fitted: FittedModel) -> dict[str, Any]:
             "classes": {name: int(np.sum(px.classes[-1][meas.interior] == k)) for k, name in enumerate(CLASSES)}}
 
 
+def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect], rng: RngLike, n_sim: int,
+            progress: Progress = no_progress) -> tuple[Evidence, list[Effect]]:
+    """The evidence of a dataset and the effects to add to the base model (refusing one already in it)."""
+    extra = resolve_effects(add)
+    names = [e.key for e in base_model()]
+    for e in extra:
+        if e.key in names:
+            raise UsageError(f"the effect '{e.key}' is already in the model")
+        names.append(e.key)
+    meas = data if isinstance(data, Measurements) else load_measurements(data, progress=progress)
+    return Evidence(meas, rng=rng, n_sim=n_sim), extra
+
+
 def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
           baseline: bool = True, n_sim: int = 199, progress: Progress = no_progress) -> CheckResult:
     """Fit the base model plus ``add`` to a dataset, score it and diagnose what is missing.
@@ -134,16 +147,8 @@ def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect]
     -------
     CheckResult
     """
-    extra = resolve_effects(add)
-    base = base_model()
-    names = [e.key for e in base]
-    for e in extra:
-        if e.key in names:
-            raise UsageError(f"the effect '{e.key}' is already in the model")
-        names.append(e.key)
-    meas = data if isinstance(data, Measurements) else load_measurements(data, progress=progress)
-    ev = Evidence(meas, rng=rng, n_sim=n_sim)
-    result = run_check(ev, [*base, *extra])
+    ev, extra = prepare(data, add, rng, n_sim, progress)
+    result = run_check(ev, [*base_model(), *extra])
     if extra and baseline:
         result.baseline = run_check(ev, base_model())
     return result

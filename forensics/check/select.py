@@ -23,9 +23,9 @@ from forensics._shared.errors import ForensicsError, UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.evidence import Evidence
-from forensics.check.measurements import Measurements, load_measurements
+from forensics.check.measurements import Measurements
 from forensics.check.result import CheckResult
-from forensics.check.run import base_model, resolve_effects, run_check
+from forensics.check.run import base_model, prepare, resolve_effects, run_check
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import Effect
 
@@ -241,12 +241,5 @@ def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Ef
     -------
     SelectionResult
     """
-    extra = resolve_effects(add)
-    names = [e.key for e in base_model()]
-    for e in extra:
-        if e.key in names:
-            raise UsageError(f"the effect '{e.key}' is already in the model")
-        names.append(e.key)
-    meas = data if isinstance(data, Measurements) else load_measurements(data, progress=progress)
-    ev = Evidence(meas, rng=rng, n_sim=n_sim)
+    ev, extra = prepare(data, add, rng, n_sim, progress)
     return forward_select(ev, [*base_model(), *extra], max_steps=max_steps)
