@@ -38,6 +38,10 @@ class VarianceBins:
     level: np.ndarray
     observed: np.ndarray
     df: np.ndarray
+    #: per bin near a bound, its pixels' scene levels at evenly spaced quantiles (NaN for the other bins)
+    spread: np.ndarray | None = None
+    #: the data's full scale (readouts lie in [0, full_scale]); None: no bounds
+    full_scale: float | None = None
 
 
 @dataclass(frozen=True)
@@ -88,7 +92,8 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
     na = meas.n_a[:, None, None].astype(float)
     var_a = noise.floor * (1.0 + np.where(classes == STK, 0.0, KERNEL_VAR)) / na
     weight = np.where(usable, 1.0 / var_a, 0.0)
-    bins = variance_bins(meas, rgroups, usable, classes)
+    scene = 0.5 * (np.stack([x[0] for x in sa]) + np.stack([x[0] for x in sb]))
+    bins = variance_bins(meas, rgroups, usable, classes, scene=scene)
     return PixelData(catalogue, classes, defect_mask, np.stack([x[0] for x in sa]), np.stack([x[0] for x in sb]),
                      fill_a, fill_b, refill_ops, noise, var_a, weight, bins)
 
@@ -118,15 +123,40 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
 
 
 def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarray, classes: np.ndarray,
-                  n_bins: int = 3) -> VarianceBins:
-    """Mean level and variance of normal pixels in ``n_bins`` quantile bins of level per repeated condition."""
+                  n_bins: int = 3, scene: np.ndarray | None = None, n_spread: int = 16,
+                  near_fraction: float = 0.01) -> VarianceBins:
+    """Mean level and variance of normal pixels in ``n_bins`` quantile bins of level per repeated condition.
+
+    A condition in which more than ``near_fraction`` of the normal pixels touched 0 or the full scale in some
+    frame (those are not usable) is near a bound: there a pixel's own mean and its temporal variance are
+    correlated (the readout's noise is skewed by the bound), so binning on the pixel's own mean would select on
+    its variance.  Such a condition is pooled into one bin, whose ``spread`` holds its pixels' scene levels
+    (from the neighbours, not the pixel itself) at ``n_spread`` quantiles for the prediction near the bound.
+    """
     rows = []
+    spread = []
+    qs = (np.arange(n_spread) + 0.5) / n_spread
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
         if m.sum() < 30:
             continue
         lev = meas.mean_all[g.index][m]
         v = meas.var_all[g.index][m]
+        normal = meas.interior & (classes[r] == NORMAL)
+        near = scene is not None and float(np.mean(~usable[r][normal])) > near_fraction
+        if near:
+            # the readout near a bound is far from normal (mostly one or two levels): the bin's weight is the
+            # df of a χ² with the spread of its pixels' variances, not the normal theory's
+            df = float(m.sum() * (g.n - 1))
+            sv = float(v.var(ddof=1))
+            if sv > 0:
+                df = min(df, 2.0 * float(v.mean()) ** 2 * v.size / sv)
+            rows.append((r, float(lev.mean()), float(v.mean()), df))
+            # the scene estimate's outlier rejection leans low where most readouts sit on a bound: centre it on
+            # the mean readout of all normal pixels (a plain average of the clipped readout, unbiased)
+            shift = float(meas.mean_all[g.index][normal].mean() - scene[r][normal].mean())
+            spread.append(np.quantile(scene[r][m], qs) + shift)
+            continue
         edges = np.quantile(lev, np.linspace(0, 1, n_bins + 1))
         which = np.clip(np.searchsorted(edges, lev, side="right") - 1, 0, n_bins - 1)
         for k in range(n_bins):
@@ -134,5 +164,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
             if s.sum() < 10:
                 continue
             rows.append((r, float(lev[s].mean()), float(v[s].mean()), int(s.sum() * (g.n - 1))))
+            spread.append(np.full(n_spread, np.nan))
     return VarianceBins(np.array([x[0] for x in rows], int), np.array([x[1] for x in rows]),
-                        np.maximum(np.array([x[2] for x in rows]), 1e-12), np.array([x[3] for x in rows], float))
+                        np.maximum(np.array([x[2] for x in rows]), 1e-12), np.array([x[3] for x in rows], float),
+                        np.array(spread).reshape(len(rows), n_spread), float(meas.full_scale))

@@ -1,5 +1,11 @@
 """The forward models of the pixel and variance channels.
 
+Variance channel: predicted temporal variance of each variance bin — the noise effects' variance plus the
+rounding variance 1/12 DN², and, for the conditions near a bound (more than 1 % of the normal pixels touched 0
+or the full scale; :func:`~forensics.check.pixels.variance_bins` pools each into one bin), the exact variance
+of the quantised, clipped readout (:func:`forensics.stats.censored.readout_moments`), conditional on
+no frame touching a bound (pixels that touched one are not usable, so the variance bins hold only the others).
+
 Pixel channel: predicted mean output of every repeated condition.
 
 The scene estimate of each pixel is mapped to incident light through the inverse of the typical pixel's
@@ -18,6 +24,7 @@ from forensics.check.measurements import Group, Measurements
 from forensics.check.pixels import PixelData, VarianceBins
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device, Effect, FrameContext, Stage
+from forensics.stats.censored import readout_moments
 
 
 def intact(device: Device) -> Device:
@@ -125,11 +132,50 @@ class Predictor:
 def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effects: Sequence[Effect],
                        device: Device) -> np.ndarray:
     """The variance channel's forward model: predicted temporal variance of each variance bin (the quantisation
-    variance plus every noise effect's)."""
+    variance plus every noise effect's; near the bounds, the clipped readout's — see :func:`near_bound`)."""
     out = np.full(len(bins.level), QUANT_VAR)
     for r in np.unique(bins.group):
         sel = bins.group == r
         ctx = context(device, rgroups[r])
         for e in noise_effects:
             out[sel] += np.asarray(e.variance(bins.level[sel], ctx), float)
+        if bins.spread is not None and bins.full_scale is not None:
+            near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, out)
     return np.maximum(out, 1e-12)
+
+
+def _noise_var(noise_effects: Sequence[Effect], level: np.ndarray, ctx: FrameContext) -> np.ndarray:
+    out = np.zeros(level.shape)
+    for e in noise_effects:
+        out += np.asarray(e.variance(level, ctx), float)
+    return np.maximum(out, 0.0)
+
+
+def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_effects: Sequence[Effect],
+               out: np.ndarray, iterations: int = 50) -> None:
+    """Predict ``out[idx]`` for the bins near a bound (those with a ``spread``; see
+    :func:`~forensics.check.pixels.variance_bins`) from the quantised, clipped readout.
+
+    Each scene level of the bin's spread (a leave-one-out mean of the neighbours' readouts, so the mean of the
+    readout y = rint(clip(x, 0, full scale)) of a pixel there) gives the latent mean μ, found by bisection
+    with the noise σ(μ) of the noise effects; the bin's usable pixels never touched a bound, so its
+    prediction is the average of the readout variance at those μ conditional on 0 < y < full scale.  The
+    rounding variance is thus exact: 1/12 away from the bounds, less where mass sits on a bound.
+    """
+    spread = bins.spread[idx]
+    near = np.all(np.isfinite(spread), axis=1)
+    lo, hi = 0, round(float(bins.full_scale))
+    if not near.any() or hi < 3:
+        return
+    m = spread[near]
+    s = np.sqrt(_noise_var(noise_effects, np.clip(m, lo, hi), ctx) + QUANT_VAR)
+    a, b = m - 10.0 * s - 2.0, m + 10.0 * s + 2.0
+    for _ in range(iterations):
+        mid = 0.5 * (a + b)
+        mean, _ = readout_moments(mid, np.sqrt(_noise_var(noise_effects, mid, ctx)), lo, hi)
+        below = mean < m
+        a = np.where(below, mid, a)
+        b = np.where(below, b, mid)
+    mu = 0.5 * (a + b)
+    _, var = readout_moments(mu, np.sqrt(_noise_var(noise_effects, mu, ctx)), lo, hi, truncate=True)
+    out[idx[near]] = var.mean(axis=1)

@@ -1,6 +1,6 @@
 """Statistics shared by every domain: verification scores (ROC, EER, DET, bootstrap intervals), count
-statistics (exact Garwood / Clopper–Pearson / mid-p intervals, Poisson regression, trend test, deviance)
-and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
+statistics (exact Garwood / Clopper–Pearson / mid-p intervals, Poisson regression, trend tests, deviance),
+the moments of clipped and quantised readouts (near 0 and full scale), and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
 those are in :mod:`forensics.report.scores`.
 """
 import lazy_loader as _lazy
@@ -12,8 +12,9 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     submod_attrs={
         "counts": [
             "LEVEL", "PoissonFit", "TrendTest", "clopper_pearson", "garwood", "midp_binomial", "poisson_deviance",
-            "poisson_glm", "trend_test",
+            "poisson_glm", "trend_test", "laplace_trend_z",
         ],
+        "censored": ["clipped_normal_moments", "readout_moments"],
         "scores": [
             "BootstrapResult", "DetCurve", "EerResult", "OperatingPoint", "Roc", "as_scores", "auc",
             "bootstrap_ci", "bootstrap_eer", "decision_threshold_at_far", "det_curve", "eer", "eer_convex_hull",

@@ -1,0 +1,29 @@
+"""The variance channel's prediction near a bound: the quantised, clipped readout (issue 9)."""
+import numpy as np
+
+from forensics.check.classes import QUANT_VAR
+from forensics.check.pixels import VarianceBins
+from forensics.check.prediction import near_bound
+from forensics.sensor.model import make_effect
+from forensics.stats.censored import readout_moments
+
+
+def test_near_bound_matches_the_truncated_readout():
+    sigma, fs = 0.7, 255.0
+    noise = [make_effect("read_noise", sigma=sigma)]
+    rng = np.random.default_rng(3)
+    y = np.rint(np.clip(rng.normal(0.0, sigma, (200_000, 2)), 0, fs))  # dark frames, black level 0, 2 repeats
+    level = float(y.mean())  # what the scene estimate of a dark pixel reads: the clipped readout's mean
+    kept = y[np.all((y > 0) & (y < fs), axis=1)]  # usable pixels never touched a bound
+    observed = float(np.mean(kept.var(axis=1, ddof=1)))
+    spread = np.array([np.full(16, level), np.full(16, np.nan)])
+    bins = VarianceBins(np.array([0, 0]), np.array([1.07, 80.0]), np.array([observed, 0.57]),
+                        np.array([100.0, 100.0]), spread, fs)
+    out = np.array([sigma**2 + QUANT_VAR] * 2)
+    near_bound(bins, np.array([0, 1]), None, noise, out)
+    se = np.sqrt(np.var(kept.var(axis=1, ddof=1)) / len(kept))
+    assert abs(out[0] - observed) < 5 * se
+    assert out[0] < 0.2 * (sigma**2 + QUANT_VAR)  # the naive prediction is an order of magnitude off
+    assert out[1] == sigma**2 + QUANT_VAR  # bins away from the bounds keep σ² + 1/12 exactly
+    # the latent mean found is the one whose readout mean is the level
+    assert abs(float(readout_moments(0.0, sigma, 0, 255)[0]) - level) < 0.01

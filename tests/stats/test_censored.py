@@ -1,0 +1,54 @@
+"""Moments of the clipped normal and of the quantised, clipped readout against Monte Carlo and the limits."""
+import numpy as np
+import pytest
+
+from forensics.stats.censored import clipped_normal_moments, readout_moments
+
+N = 400_000
+CASES = [(0.3, 1.0, 0, 10), (5.0, 1.0, 0, 10), (1.0, 0.7, 0, 255), (254.0, 2.0, 0, 255), (-0.5, 2.0, 0, 3),
+         (2.0, 0.4, 0, 255)]
+
+
+def _check(mean, var, y):
+    n = y.size
+    se_m = np.sqrt(y.var() / n) + 1e-12
+    se_v = np.sqrt(max(np.mean((y - y.mean()) ** 4) - y.var() ** 2, 0.0) / n) + 1e-12
+    assert abs(mean - y.mean()) < 5 * se_m
+    assert abs(var - y.var()) < 5 * se_v
+
+
+@pytest.mark.parametrize("mu,sigma,lo,hi", CASES)
+def test_clipped_normal_against_monte_carlo(mu, sigma, lo, hi):
+    x = np.random.default_rng(1).normal(mu, sigma, N)
+    m, v = clipped_normal_moments(mu, sigma, lo, hi)
+    _check(float(m), float(v), np.clip(x, lo, hi))
+
+
+@pytest.mark.parametrize("mu,sigma,lo,hi", CASES)
+def test_readout_against_monte_carlo(mu, sigma, lo, hi):
+    y = np.rint(np.clip(np.random.default_rng(2).normal(mu, sigma, N), lo, hi))
+    m, v = readout_moments(mu, sigma, lo, hi)
+    _check(float(m), float(v), y)
+    inner = y[(y > lo) & (y < hi)]
+    m, v = readout_moments(mu, sigma, lo, hi, truncate=True)
+    _check(float(m), float(v), inner)
+
+
+def test_limits_and_vectorisation():
+    mu = np.array([[100.0, -1e3, 1e3], [5.0, 50.0, 7.0]])
+    m, v = clipped_normal_moments(mu, 1.5, 0.0, 200.0)
+    assert m.shape == (2, 3)
+    assert m[0, 0] == pytest.approx(100.0, abs=1e-12) and v[0, 0] == pytest.approx(2.25, rel=1e-12)
+    assert (m[0, 1], v[0, 1]) == (0.0, 0.0) and (m[0, 2], v[0, 2]) == (200.0, 0.0)
+    m, v = clipped_normal_moments(3.0, 2.0)  # no bounds
+    assert (float(m), float(v)) == (3.0, 4.0)
+    m, v = clipped_normal_moments([-1.0, 4.0], 0.0, 0.0, 3.0)  # σ = 0: the clipped value
+    assert list(m) == [0.0, 3.0] and list(v) == [0.0, 0.0]
+    # a large level far from the bounds: no cancellation
+    m, v = clipped_normal_moments(6.0e4, 1.0, 0.0, 65535.0)
+    assert float(m) == 6.0e4 and float(v) == pytest.approx(1.0, rel=1e-12)
+    # the readout far from the bounds: μ and σ² + 1/12 (rounding); fully clipped: the bound and 0
+    m, v = readout_moments(np.array([1000.0, 1000.25]), 3.0, 0, 65535)
+    assert m == pytest.approx([1000.0, 1000.25], abs=1e-9) and v == pytest.approx(9 + 1 / 12, rel=1e-6)
+    m, v = readout_moments(np.array([-40.0, 300.0]), 1.0, 0, 255)
+    assert list(m) == [0.0, 255.0] and list(v) == [0.0, 0.0]
