@@ -42,25 +42,30 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 PIXEL_EFFECTS = ("prnu", "dark_current", "gain", "nonlinearity", "dsnu")
 
 
-def run_one(job: tuple[str, int] | tuple[str, int, str]) -> dict:
-    from forensics.fixtures.hidden import make_hidden
-    from forensics.check import check
+def known_effects(design, effect: str) -> list[str]:
+    """Effects a convention puts in every device, which the user knows of and names (``--add``): the ISO
+    amplifier of a convention with an analogue gain (unless the gain is the hidden effect itself)."""
+    return ["gain"] if design.iso_gain != "none" and effect != "gain" else []
 
-    from forensics.fixtures.hidden import convention
+
+def run_one(job: tuple[str, int] | tuple[str, int, str]) -> dict:
+    from forensics.check.run import base_model, prepare, resolve_effects, run_check
+    from forensics.fixtures.hidden import convention, make_hidden
 
     effect, seed = job[:2]
     conv = job[2] if len(job) > 2 else "project"  # (effect, seed[, convention])
+    design = convention(conv)
+    known = known_effects(design, effect)
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="sweep-check-") as tmp:
         data = Path(tmp) / "data"
-        make_hidden(effect, data, rng=seed, design=convention(conv))
-        if effect == "none":
-            res = check(data, rng=seed)
-            base, added = res, None
-        else:
-            added = check(data, add=[effect], rng=seed)
-            base = added.baseline
-    out = {"effect": effect, "seed": seed, "convention": conv, "seconds": time.perf_counter() - started,
+        make_hidden(effect, data, rng=seed, design=design)
+        ev, _ = prepare(data, known, seed, 199)
+        start = [*base_model(ev.black_level), *resolve_effects(known)]
+        base = run_check(ev, start)
+        added = None if effect == "none" else run_check(ev, [*start, *resolve_effects([effect])])
+    out = {"effect": effect, "seed": seed, "convention": conv, "known": known,
+           "seconds": time.perf_counter() - started,
            "base_flagged": base.flagged, "base_top": base.candidates[0].effect if base.candidates else None,
            "base_error": base.error, "base_gof": base.gof,
            "base_ranking": [(c.effect, round(c.delta_bic, 1)) for c in base.candidates]}

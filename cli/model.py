@@ -163,8 +163,11 @@ def format_check(result: Any) -> str:
              f"{d['light_levels']} light levels",
              f"Model: {' + '.join(result.effects)}", "", "Fitted parameters"]
     for p in result.params:
+        if not (p.identifiable and p.converged):
+            lines.append(f"  {p.label:<32} {p.summary()}")
+            continue
         se = "" if p.se is None else f" ± {_g(p.se)}"
-        lines.append(f"  {p.effect + '.' + p.name:<32} {_g(p.value, '.4g')}{se} {p.unit}".rstrip())
+        lines.append(f"  {p.label:<32} {_g(p.value, '.4g')}{se} {p.unit}".rstrip())
     for p in result.patterns:
         if not p.blocks:
             continue

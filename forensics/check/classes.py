@@ -5,6 +5,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from forensics.io.dataset import is_dark_subject
 from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
 
 CLASSES = ("normal", "partial", "stuck")
@@ -22,3 +23,10 @@ def class_maps(catalogue: DefectCatalogue, shape: tuple[int, int], times: Sequen
         out[i][eff.y[eff.kind == PARTIAL], eff.x[eff.kind == PARTIAL]] = PART
         out[i][eff.y[eff.kind == STUCK], eff.x[eff.kind == STUCK]] = STK
     return out
+
+
+def dark_groups(groups: Sequence) -> np.ndarray:
+    """Boolean per group: taken without light (the manifest's ``subject`` is ``dark``), so its light is known
+    to be zero and its prediction does not use the scene estimate."""
+    return np.array([is_dark_subject(g.subject) for g in groups], bool)
+

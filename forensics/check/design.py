@@ -9,6 +9,7 @@ import numpy as np
 from forensics.check.classes import QUANT_VAR
 from forensics.check.diagnosis import FLAG_DBIC
 from forensics.check.evidence import Evidence
+from forensics.check.measurements import Measurements
 from forensics.check.params import is_pixel
 from forensics.check.pixels import PixelData
 from forensics.check.result import Candidate
@@ -45,6 +46,7 @@ def design_warnings(ev: Evidence, px: PixelData, candidates: list[Candidate], ef
             if abs(a.delta_bic - b.delta_bic) < FLAG_DBIC and {t.channel for t in a.tests} & {t.channel for t in b.tests}:
                 out.append(f"the data cannot separate {a.effect} from {b.effect} (predicted ΔBIC "
                            f"{a.delta_bic:.3g} vs {b.delta_bic:.3g}): {_frames_to_add(ev, px, a.effect, b.effect)}")
+    out += data_limits(ev.meas)
     for c in candidates:
         if not c.tests:
             stage = EFFECTS[c.effect].stage.name.lower() if c.effect in EFFECTS else "?"
@@ -54,6 +56,39 @@ def design_warnings(ev: Evidence, px: PixelData, candidates: list[Candidate], ef
             model_names = ", ".join(e.key for e in effects if is_pixel(e))
             out.append(f"{c.effect} cannot be detected with these data: its signature is absorbed by the fitted "
                        f"parameters of {model_names}; {_frames_to_add(ev, px, c.effect, None)}")
+    return out
+
+
+#: Lag-1 spatial correlation of the temporal noise above which it is no longer a raw sensor's (≈ 0).
+CORRELATED_NOISE = 0.2
+
+
+def data_limits(meas: Measurements) -> list[str]:
+    """What the frames themselves limit: in-camera processing (JPEG, demosaicing: spatially correlated noise)
+    and frame-to-frame level changes."""
+    out = []
+    traits = meas.traits
+    if traits is None:
+        return out
+    rho = traits.lag1
+    correlated = rho is not None and rho > CORRELATED_NOISE
+    if traits.jpeg or correlated:
+        why = " and ".join(w for w in ("the frames are JPEG-compressed" if traits.jpeg else "",
+                                        f"the temporal noise is spatially correlated (lag-1 ρ = {rho:.2f})"
+                                        if correlated else "") if w)
+        out.append(f"{why}: the camera processed the sensor's output (demosaicing, compression), so σ_k is the "
+                   "effective in-camera value, not the sensor's raw PRNU (and likewise for every fixed pattern); "
+                   "the pixel channel's noise floor is measured on the residuals, so its tests stay calibrated")
+    drifts = [(meas.drift(r), meas.groups[g]) for r, g in enumerate(meas.repeated)]
+    moved = [(d, g) for d, g in drifts
+             if d.material(float(np.median(meas.var_all[g.index][meas.interior])))]
+    if moved:
+        sd = math.sqrt(max(d.var for d, _ in moved))
+        noise = max(float(np.median(meas.var_all[g.index][meas.interior])) for _, g in moved)
+        out.append(f"frame-to-frame level changes removed; they are not pixel noise: in {len(moved)} of "
+                   f"{len(drifts)} condition(s) the frame means spread by up to {sd:.2g} DN rms, more than "
+                   f"the noise allows (F test p < 0.001; {sd**2 / max(noise, 1e-12):.0%} of a pixel's temporal "
+                   "variance); the noise floor and the binned variances are measured without them")
     return out
 
 

@@ -58,8 +58,10 @@ class EffectQuestions:
 class Evidence(EffectQuestions):
     """Measurements reduced for checking: detected defects, pixel data per catalogue, forward models."""
 
-    def __init__(self, meas: Measurements, rng: RngLike = 0, n_sim: int = 199):
+    def __init__(self, meas: Measurements, rng: RngLike = 0, n_sim: int = 199, black_level: float | None = None):
         self.meas = meas
+        #: the black level stated by the files' metadata or the manifest (None: the fit estimates it)
+        self.black_level = black_level
         self.streams = Streams(rng, n_sim)
         self.shape = meas.shape
         self.window = meas.window

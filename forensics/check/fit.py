@@ -6,6 +6,7 @@ A fit never changes the effects it is given: it returns a :class:`FittedModel` c
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from scipy import optimize
 from forensics.check.arrivals import DefectCounts
 from forensics.check.classes import NORMAL
 from forensics.check.evidence import Evidence
+from forensics.check.identify import estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels
 from forensics.check.pixels import PixelData, VarianceBins
@@ -51,6 +53,11 @@ class FittedModel:
     spatial_null: dict[str, Any] | None
     sims: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def not_converged(self) -> list[str]:
+        """Parameters whose fit did not settle (``effect.name``); the fit is then not a result."""
+        return [p.label for p in self.params if not p.converged]
+
     def arrival_effects(self) -> list[Effect]:
         return [e for e in self.effects if e.stage == Stage.ARRIVAL]
 
@@ -84,9 +91,19 @@ def same_catalogue(a: DefectCatalogue, b: DefectCatalogue | None) -> bool:
     return ka == kb
 
 
+def at_null(effect: Effect) -> Effect:
+    """The effect with every fitted parameter that has a null value at it: fits start from the smaller model
+    (arrival effects keep their own starting values, set from the counts)."""
+    if effect.stage == Stage.ARRIVAL:
+        return effect
+    nulls = effect.null_values()
+    start = {n: nulls[n] for n in effect.free_params() if n in nulls}
+    return dataclasses.replace(effect, **start) if start else effect
+
+
 def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cycles: int) -> FittedModel:
-    effects = list(SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects),
-                               t0=float(ev.times[0])).effects)  # in stage order
+    effects = [at_null(e) for e in SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects),
+                                               t0=float(ev.times[0])).effects]  # in stage order
     params: list[ParamEstimate] = []
     # ---------------------------------------------------------------- arrivals
     a_idx = [i for i, e in enumerate(effects) if e.stage == Stage.ARRIVAL]
@@ -105,6 +122,11 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         if is_pixel(e) and e.null_values():
             for pat in e.patterns(device):
                 pat.values[...] = 0.0
+    # a first look at the noise (the pixel channel's censored means near 0 and full scale depend on it)
+    n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
+    first, _, _ = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx], device, [])
+    for i, e in zip(n_idx, first):
+        effects[i] = e
     p_idx = [i for i, e in enumerate(effects) if is_pixel(e)]
     for i in p_idx:
         effects[i] = bespoke_fit(effects[i], ev)
@@ -113,7 +135,6 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     projector = PixelProjector([c * np.sqrt(pixels.weight) for c in pix.nuisance])
     effects, patterns = pattern_summaries(on_device(device, effects), effects, p_idx, pix.local, pix.local_var)
     # ---------------------------------------------------------------- variance
-    n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
     for i in n_idx:
         effects[i] = bespoke_fit(effects[i], ev)
     noise, vpred, vjac = fit_variance(pixels.bins, ev.rgroups, [effects[i] for i in n_idx], device, params)
@@ -156,6 +177,7 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
     def increments(effs: list[Effect]) -> tuple[np.ndarray, np.ndarray]:
         return counts.increments(counts.expected_counts(effs))
 
+    converged = True
     for _ in range(3):
         arr = [bespoke_fit(e, evidence) for e in arr]
         if not free or len(times) < 2:
@@ -182,6 +204,7 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
             bounds.append((-25.0, 25.0) if _log_scale(arr[j], n) else (lo if np.isfinite(lo) else None,
                                                                        hi if np.isfinite(hi) else None))
         best = optimize.minimize(nll, x0, method="L-BFGS-B", bounds=bounds)
+        converged = bool(best.success) and bool(np.all(np.isfinite(best.x)))
         arr = unpack(arr, best.x)
     expected = counts.expected_counts(arr)
     jac = None
@@ -194,10 +217,7 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
             cols.append((increments(with_param(arr, j, n, v + d))[1] - base) / d)
         jac = np.array(cols)
         m = np.maximum(base, 1e-9)
-        cov = np.linalg.pinv((jac / m) @ jac.T)
-        for i, (j, n) in enumerate(free):
-            params.append(ParamEstimate(arr[j].key, n, float(getattr(arr[j], n)), float(np.sqrt(max(cov[i, i], 0))),
-                                        unit(arr[j], n)))
+        params += estimates(arr, free, (jac / m) @ jac.T, converged)
     for e in arr:
         for n in e.self_fitted:
             params.append(ParamEstimate(e.key, n, float(getattr(e, n)), None, unit(e, n)))
@@ -260,7 +280,9 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
             cols.append((log_pred(with_param(effs, j, n, v + d)) - pred) / d)
         return np.array(cols)
 
+    converged = True
     if free and len(y):
+        converged = False
         for _ in range(30):
             pred = log_pred(noise)
             r = y - pred
@@ -278,10 +300,8 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
                     break
                 step = step / 2
             if np.all(np.abs(step) <= 1e-7 * (1 + np.abs(old))):
+                converged = True
                 break
         jac = jacobian(noise, log_pred(noise))
-        cov = np.linalg.pinv((jac * w) @ jac.T)
-        for i, (j, n) in enumerate(free):
-            params.append(ParamEstimate(noise[j].key, n, float(getattr(noise[j], n)), float(np.sqrt(max(cov[i, i], 0.0))),
-                                        unit(noise[j], n)))
+        params += estimates(noise, free, (jac * w) @ jac.T, converged)
     return noise, predicted_variance(bins, rgroups, noise, device), jac

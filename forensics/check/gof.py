@@ -16,6 +16,7 @@ from forensics.check.classes import CLASSES, PART, QUANT_VAR, STK
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
 from forensics.check.result import CheckRow
+from forensics.check.pixels import uses_scene
 from forensics.check.scene import KERNEL_VAR
 from forensics.sensor.catalogue import PARTIAL
 from forensics.stats.counts import laplace_trend_z, poisson_deviance
@@ -27,7 +28,7 @@ def class_errors(ev: Evidence, fitted: FittedModel) -> dict[str, float | None]:
     meas = ev.meas
     r = meas.mean_b - fitted.mu_b
     nb = meas.n_b[:, None, None].astype(float)
-    scene_term = np.where(px.classes == STK, 0.0, KERNEL_VAR)
+    scene_term = np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)
     floor = px.raw_floor * (1.0 + scene_term) / nb
     out: dict[str, float | None] = {}
     r2 = r * r
@@ -103,7 +104,7 @@ def covariate_checks(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) 
     meas = ev.meas
     r = meas.mean_b - fitted.mu_b
     nb = meas.n_b[:, None, None].astype(float)
-    var_b = px.floor * (1.0 + np.where(px.classes == STK, 0.0, KERNEL_VAR)) / nb
+    var_b = px.floor * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb
     z = r / np.sqrt(var_b)
     covs = {
         "scene level (DN)": px.scene_a,  # the other half's estimate: binning on its own would bias the residual

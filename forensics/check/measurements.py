@@ -2,21 +2,28 @@
 
 Every frame is read once.  Frames are grouped by condition (epoch, exposure, ISO, temperature, subject);
 each group's frames stream into :class:`~forensics.io.stack.StackAccumulator` s — all frames, and the even
-and odd frames separately (the two halves the pixel channel fits and scores on).
+and odd frames separately (the two halves the pixel channel fits and scores on) — and so does each frame's
+residual from its own scene estimate, whose temporal variance is the pixel channel's noise floor: it is what
+the noise of a residual actually is, whether the temporal noise is white or spatially correlated (demosaiced,
+JPEG-compressed frames) and whether or not the frames' overall level drifts (a level change is part of every
+frame's scene estimate, so it is not in the residual).  What the data limit is measured on the way: the
+spatial correlation of the temporal noise and the spread of the frame means (:class:`NoiseTraits`).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import ndimage, stats
 
 import forensics.stats.spatial as sp
 from forensics._shared.arrays import grey_mean, infer_full_scale
 from forensics._shared.errors import InputError
 from forensics._shared.progress import Progress, no_progress
-from forensics.check.scene import SCENE_SIZE, scene_estimate
+from forensics.check.scene import KERNEL, SCENE_SIZE, scene_estimate
 from forensics.io.dataset import Dataset, open_dataset, split_epochs
 from forensics.io.stack import StackAccumulator
 
@@ -56,6 +63,29 @@ class Group:
 
 
 @dataclass
+class NoiseTraits:
+    """What the temporal noise looks like, beyond its variance (for the check's warnings on what data limit).
+
+    ``lag1`` is the correlation of the temporal noise between horizontally and vertically adjacent pixels
+    (≈ 0 for a raw sensor's noise; demosaicing and JPEG compression correlate it), from the differences of
+    consecutive frames of a condition, high-passed so that the scene and level changes drop out.  ``blocks``
+    holds, per repeated condition, the mean of every frame over square blocks ``(n_frames, n_blocks)``: the
+    frames' level changes against the noise of a frame mean (:func:`forensics.check.design.level_drift`).
+    """
+
+    lag1: float | None
+    blocks: list[np.ndarray]
+    jpeg: bool
+
+
+#: Side of the blocks over which frame means are taken (the noise is independent between blocks this large).
+DRIFT_BLOCK = 32
+#: Side of the box whose mean is removed from a frame difference before its lag-1 correlation is measured.
+LAG_BOX = 15
+JPEG_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif")
+
+
+@dataclass
 class Measurements:
     """Per-condition statistics of a dataset, ready for checking.
 
@@ -83,6 +113,15 @@ class Measurements:
     n_frames: int
     scene_all: np.ndarray = field(default=None)  # type: ignore[assignment]
     notes: list[str] = field(default_factory=list)
+    #: per condition, the temporal variance of each frame's residual from its own scene estimate
+    var_resid: np.ndarray = field(default=None)  # type: ignore[assignment]
+    traits: NoiseTraits | None = None
+
+    def drift(self, r: int) -> LevelDrift:
+        """Frame-to-frame level changes of repeated condition ``r`` (index into :attr:`repeated`)."""
+        if self.traits is None or r >= len(self.traits.blocks):
+            return LevelDrift(0.0, 0.0, 1.0)
+        return level_drift(self.traits.blocks[r])
 
     @property
     def interior(self) -> np.ndarray:
@@ -109,6 +148,51 @@ class Measurements:
 def _central_crop(h: int, w: int, max_size: int) -> tuple[slice, slice]:
     top, left = max(0, (h - max_size) // 2), max(0, (w - max_size) // 2)
     return slice(top, top + min(h, max_size)), slice(left, left + min(w, max_size))
+
+
+def frame_residual(grey: np.ndarray) -> np.ndarray:
+    """A frame less its neighbours' leave-one-out quadratic estimate (:data:`~forensics.check.scene.KERNEL`):
+    the frame's noise and fixed pattern, without its scene or its level.
+
+    The kernel is applied linearly (no outlier rejection, reflected edges): cheap for every frame, and its
+    temporal variance is exactly that of the kernel's residual of the temporal noise, which is what the half
+    means' residuals carry.  A defect is fixed in time, so it adds nothing to its neighbours' temporal variance
+    beyond its own noise's small share (w² ≤ 0.006).  Within the kernel's reach of the edge (outside the
+    check's border) the reflection makes the value differ from the pixel channel's.
+    """
+    return grey - ndimage.correlate(grey, KERNEL, mode="reflect")
+
+
+def block_means(grey: np.ndarray, size: int = DRIFT_BLOCK) -> np.ndarray:
+    """Means of a frame over its whole ``size × size`` blocks (row-major; a partial last row or column is
+    dropped)."""
+    h, w = (grey.shape[0] // size) * size, (grey.shape[1] // size) * size
+    if h == 0 or w == 0:
+        return np.array([float(grey.mean())])
+    return grey[:h, :w].reshape(h // size, size, w // size, size).mean(axis=(1, 3)).ravel()
+
+
+class Lag1:
+    """Accumulates the lag-1 spatial correlation of the temporal noise from consecutive frames' differences."""
+
+    def __init__(self, box: int = LAG_BOX):
+        self.box = box
+        self.cross = 0.0
+        self.square = 0.0
+
+    def add(self, previous: np.ndarray, current: np.ndarray) -> None:
+        # the difference of two frames of one condition is noise plus a smooth level change; the box mean removes
+        # the latter (it lowers a white noise's lag-1 correlation by ≈ 1/box², negligible)
+        d = current - previous
+        hp = (d - ndimage.uniform_filter(d, size=self.box, mode="reflect"))[self.box:-self.box, self.box:-self.box]
+        if hp.size == 0:
+            return
+        self.cross += 0.5 * (float(np.sum(hp[:, 1:] * hp[:, :-1])) / max(hp[:, 1:].size, 1)
+                             + float(np.sum(hp[1:] * hp[:-1])) / max(hp[1:].size, 1))
+        self.square += float(np.mean(hp * hp))
+
+    def result(self) -> float | None:
+        return self.cross / self.square if self.square > 0 else None
 
 
 def group_frames(ds: Dataset, epoch: np.ndarray, epoch_times: np.ndarray) -> list[Group]:
@@ -169,15 +253,27 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     mean_a, mean_b = np.zeros((R, *shp)), np.zeros((R, *shp))
     n_a, n_b = np.zeros(R, int), np.zeros(R, int)
     rpos = {g: r for r, g in enumerate(repeated)}
+    var_resid = np.zeros((G, *shp))
+    lag = Lag1()
+    blocks: list[np.ndarray] = []
     dtype = None
     for g in progress(groups, total=G, desc="frames"):
         whole, halves = StackAccumulator(), (StackAccumulator(), StackAccumulator())
+        resid = StackAccumulator()
+        previous = None
+        frame_blocks = []
         for j, i in enumerate(g.frames):
             img = ds.frames[i].load()
             dtype = img.dtype if dtype is None else dtype
             grey = grey_mean(img[crop], np.float64)
             whole.add(grey, name=ds.frames[i].file)
             halves[j % 2].add(grey, name=ds.frames[i].file)
+            if g.index in rpos:
+                resid.add(frame_residual(grey), name=ds.frames[i].file)
+                frame_blocks.append(block_means(grey))
+                if previous is not None:
+                    lag.add(previous, grey)
+                previous = grey
         stats = whole.result()
         mean_all[g.index], var_all[g.index] = stats.mean, stats.var
         lo[g.index], hi[g.index] = stats.minimum, stats.maximum
@@ -186,9 +282,58 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
             a, b = halves[0].result(), halves[1].result()
             mean_a[r], mean_b[r] = a.mean, b.mean
             n_a[r], n_b[r] = a.n, b.n
+            var_resid[g.index] = resid.result().var
+            blocks.append(np.array(frame_blocks))
     full_scale = infer_full_scale(np.dtype(dtype), max(0.0, float(hi.max())))
     border = SCENE_SIZE // 2 if border is None else int(border)
     meas = Measurements(ds.root, shp, full_scale, border, epoch_times, has_time, groups, mean_all, var_all, lo, hi,
-                        repeated, mean_a, mean_b, n_a, n_b, len(ds), notes=notes)
+                        repeated, mean_a, mean_b, n_a, n_b, len(ds), notes=notes, var_resid=var_resid)
+    jpeg = any(Path(f.file).suffix.lower() in JPEG_SUFFIXES for f in ds.frames)
+    meas.traits = NoiseTraits(lag.result(), blocks, jpeg)
     meas.scene_all = np.stack([scene_estimate(m) for m in mean_all])
     return meas
+
+
+@dataclass(frozen=True)
+class LevelDrift:
+    """How much the frames' overall level changes within a condition, against the noise of a frame mean."""
+
+    var: float  #: variance of the frame-to-frame level changes (DN²; 0 when not above the noise)
+    f: float  #: F statistic: frames' mean square over the frames × blocks interaction's
+    p: float
+
+    def material(self, pixel_var: float, alpha: float = 1e-3, share: float = 0.01) -> bool:
+        """Significant (p < ``alpha``) and at least ``share`` of a pixel's temporal variance ``pixel_var``."""
+        return self.p < alpha and self.var >= share * pixel_var
+
+
+def level_drift(blocks: np.ndarray | Sequence[np.ndarray]) -> LevelDrift:
+    """Frame-to-frame level changes from the frames' block means ``(n_frames, n_blocks)`` (or several
+    conditions' arrays, pooled): a two-way analysis of variance, frames × blocks.
+
+    A level change moves every block of a frame alike; noise moves the blocks independently (blocks are much
+    larger than the noise's correlation length), so the frames' mean square is tested against the
+    interaction's.  The interaction also holds any change of the scene's shape (a level change times the
+    vignetting), which only makes the test conservative.
+    """
+    arrays = [blocks] if isinstance(blocks, np.ndarray) else list(blocks)
+    ss_f = ss_e = 0.0
+    df_f = df_e = 0
+    n_blocks = []
+    for x in arrays:
+        t, b = x.shape if x.ndim == 2 else (0, 0)
+        if t < 2 or b < 2:
+            continue
+        frame = x.mean(axis=1)
+        inter = x - frame[:, None] - x.mean(axis=0)[None] + x.mean()
+        ss_f += b * float(np.sum((frame - frame.mean()) ** 2))
+        ss_e += float(np.sum(inter**2))
+        df_f += t - 1
+        df_e += (t - 1) * (b - 1)
+        n_blocks.append(b)
+    if df_f == 0 or ss_e <= 0:
+        return LevelDrift(0.0, 0.0, 1.0)
+    ms_f, ms_e = ss_f / df_f, ss_e / df_e
+    f = ms_f / ms_e
+    p = float(stats.f.sf(f, df_f, df_e))
+    return LevelDrift(max(ms_f - ms_e, 0.0) / float(np.mean(n_blocks)), f, p)

@@ -7,7 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from forensics.check.evidence import Evidence
-from forensics.check.params import on_device, unit, with_clipped_param, with_param
+from forensics.check.identify import estimates
+from forensics.check.params import on_device, with_clipped_param, with_param
 from forensics.check.pixels import PixelData
 from forensics.check.projection import PixelProjector, solve_local
 from forensics.check.result import ParamEstimate
@@ -71,6 +72,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     X_local: list[np.ndarray] = []
     local_var = None
     H = None
+    converged = False
     for cycle in range(max_cycles):
         raw = predict(dev, clip=False)  # derivatives ignore the clipping (clipped values are censored)
         mu = np.clip(raw, 0.0, fs)
@@ -94,6 +96,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         mu = predict(dev)
         chi = float(np.sum(w * (y - mu) ** 2))
         if np.isfinite(chi_prev) and abs(chi_prev - chi) <= 1e-6 * max(chi, 1.0) and cycle >= 1:
+            converged = True
             break
         chi_prev = chi
     raw = predict(dev, clip=False)
@@ -102,10 +105,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         _, local_var = solve_local(w, X_local, y - mu)
     if glob:
-        cov = np.linalg.pinv(H)
-        for k, (i, n) in enumerate(glob):
-            params.append(ParamEstimate(effects[i].key, n, float(getattr(effects[i], n)),
-                                        float(np.sqrt(max(cov[k, k], 0.0))), unit(effects[i], n)))
+        params += estimates(effects, glob, H, converged and np.isfinite(chi))
     return PixelFit(effects, mu, X_local, local, local_var)
 
 

@@ -8,26 +8,45 @@ re-detection) gives a new :class:`PixelData`.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import signal
 
-from forensics.check.classes import NORMAL, QUANT_VAR, STK, class_maps
+from forensics.check.classes import NORMAL, QUANT_VAR, STK, class_maps, dark_groups
 from forensics.check.measurements import Group, Measurements
-from forensics.check.scene import KERNEL, KERNEL_VAR, kernel_scatter, scene_estimate_and_fill
+from forensics.check.scene import (
+    KERNEL,
+    KERNEL_VAR,
+    kernel_scatter,
+    loo_quadratic_kernel,
+    scene_estimate_and_fill,
+)
 from forensics.sensor.catalogue import DefectCatalogue
 
 
 @dataclass(frozen=True)
 class NoiseFloor:
-    """σ²(level) = a_g + b·level per repeated condition, measured from the repeats of normal pixels."""
+    """The pixel channel's noise floor per repeated condition, measured from the repeats of normal pixels.
 
-    a: np.ndarray
-    b: float
-    floor: np.ndarray  #: per-frame temporal variance at each (condition, pixel)
-    raw: np.ndarray  #: the sample variance itself (quantisation variance for noiseless stuck pixels)
+    Where a pixel's prediction uses the scene estimate (every pixel but stuck ones, in frames with light), the
+    floor is fitted to the temporal variance of each frame's residual from its own scene estimate,
+    v(level) = a_g + b·level — the noise a residual actually has, whatever the temporal noise's spatial
+    correlation and whether or not the frames' level drifts — and stored divided by the scene-noise factor
+    1 + Σw² the pixel channel multiplies it by: ``floor · (1 + Σw²) / n`` is then the measured variance of a
+    residual of a mean of ``n`` frames.  Elsewhere (stuck pixels, dark frames) the prediction does not use the
+    neighbours, and the floor is the pixel's own temporal variance law, a_grey + b_grey·level.
+    """
+
+    a: np.ndarray  #: per condition, the residual law's intercept (DN²)
+    b: float  #: the residual law's slope (DN)
+    floor: np.ndarray  #: per-frame temporal variance at each (condition, pixel), as described above
+    raw: np.ndarray  #: the same from each pixel's own sample variance (quantisation variance for noiseless stuck pixels)
+    a_grey: np.ndarray | None = None  #: the pixel's own variance law: intercept per condition
+    b_grey: float = 0.0  #: and slope
 
 
 @dataclass(frozen=True)
@@ -62,6 +81,8 @@ class PixelData:
     bins: VarianceBins
     #: incident light of the scene estimates per chain table (filled by the prediction; depends on the scenes)
     light_cache: dict[Any, Any] = field(default_factory=dict, compare=False, repr=False)
+    #: arrays derived from the pixel data alone, computed on first use (e.g. :func:`wide_residuals`)
+    derived: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def floor(self) -> np.ndarray:
@@ -88,9 +109,9 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
     fill_b = np.stack([np.where(defect_mask[r], sb[r][1], 0.0) for r in range(len(rgroups))])
     refill_ops = {e: kernel_scatter(m != NORMAL, KERNEL) for e, m in enumerate(epoch_classes)}
     rep = [g.index for g in rgroups]
-    noise = noise_floor(meas, rep, usable, classes)
+    noise = noise_floor(meas, rep, usable, classes, rgroups)
     na = meas.n_a[:, None, None].astype(float)
-    var_a = noise.floor * (1.0 + np.where(classes == STK, 0.0, KERNEL_VAR)) / na
+    var_a = noise.floor * (1.0 + np.where(uses_scene(classes, rgroups), KERNEL_VAR, 0.0)) / na
     weight = np.where(usable, 1.0 / var_a, 0.0)
     scene = 0.5 * (np.stack([x[0] for x in sa]) + np.stack([x[0] for x in sb]))
     bins = variance_bins(meas, rgroups, usable, classes, scene=scene)
@@ -98,15 +119,16 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
                      fill_a, fill_b, refill_ops, noise, var_a, weight, bins)
 
 
-def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes: np.ndarray) -> NoiseFloor:
-    """σ²(level) = a_g + b·level per condition from the repeats of normal pixels; measured, never modelled."""
-    var = meas.var_all[rep]
-    level = meas.mean_all[rep]
-    normal = usable & (classes == NORMAL)
-    a = np.zeros(len(rep))
+def variance_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
+    """σ²(level) = a_g + b·level fitted to ``var`` over ``mask`` (per condition g; one common slope b).
+
+    Conditions with fewer than 10 pixels in ``mask`` do not inform the slope; a condition with none takes the
+    median of its ``var`` as intercept.
+    """
+    a = np.zeros(len(level))
     num = den = 0.0
-    for r in range(len(rep)):
-        m = normal[r]
+    for r in range(len(level)):
+        m = mask[r]
         lv, vv = level[r][m], var[r][m]
         if lv.size < 10:
             continue
@@ -114,12 +136,57 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
         num += float(np.sum(lc * (vv - vv.mean())))
         den += float(np.sum(lc * lc))
     b = num / den if den > 0 else 0.0
-    for r in range(len(rep)):
-        m = normal[r]
+    for r in range(len(level)):
+        m = mask[r]
         a[r] = float(np.mean(var[r][m] - b * level[r][m])) if m.any() else float(np.median(var[r]))
-    smooth = np.maximum(a[:, None, None] + b * level, QUANT_VAR)
+    return a, b
+
+
+def uses_scene(classes: np.ndarray, rgroups: Sequence[Group]) -> np.ndarray:
+    """Per (condition, pixel): whether the prediction uses the scene estimate (not for stuck pixels, whose
+    reading is their own, nor in frames known to be dark, whose light is zero)."""
+    return (classes != STK) & ~dark_groups(rgroups)[:, None, None]
+
+
+def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes: np.ndarray,
+                rgroups: Sequence[Group] | None = None) -> NoiseFloor:
+    """The pixel channel's noise floor from the repeats of normal pixels; measured, never modelled
+    (see :class:`NoiseFloor`).
+
+    Stuck pixels and dark frames keep the law of the pixels' own temporal variance; a stuck pixel that never
+    changed (no noise downstream of it) has the quantisation variance only.
+    """
+    rgroups = [meas.groups[g] for g in rep] if rgroups is None else rgroups
+    level = meas.mean_all[rep]
+    var = meas.var_all[rep]
+    normal = usable & (classes == NORMAL)
+    # the pixel's own variance: stuck pixels and dark frames (predictions that do not use the neighbours)
+    a_grey, b_grey = variance_law(level, var, normal)
+    own = np.maximum(a_grey[:, None, None] + b_grey * level, QUANT_VAR)
     constant = np.all(var == 0, axis=0)[None] & (classes == STK)  # noiseless stuck pixels: only quantisation remains
-    return NoiseFloor(a, b, np.where(constant, QUANT_VAR, smooth), np.maximum(var, QUANT_VAR * constant))
+    own = np.where(constant, QUANT_VAR, own)
+    own_raw = np.maximum(var, QUANT_VAR * constant)
+    # the residual's variance where the prediction uses the scene estimate: what the pixel channel's residuals
+    # have, with the noise's spatial correlation and without the frames' level changes
+    scene = uses_scene(classes, rgroups)
+    resid = meas.var_resid[rep] if meas.var_resid is not None else var * (1.0 + KERNEL_VAR)
+    a, b = variance_law(level, resid, normal & scene)
+    factor = 1.0 + KERNEL_VAR
+    smooth = np.maximum(a[:, None, None] + b * level, QUANT_VAR * factor) / factor
+    floor = np.where(scene, smooth, own)
+    raw = np.where(scene, np.maximum(resid, QUANT_VAR * factor) / factor, own_raw)
+    return NoiseFloor(a, b, floor, raw, a_grey, b_grey)
+
+
+def level_changes(meas: Measurements, g: Group) -> float:
+    """The variance the frames' level changes add to every pixel of condition ``g`` (DN²), when they are
+    significant and material (:meth:`~forensics.check.measurements.LevelDrift.material`); else 0.  They move
+    whole frames, not pixels: they are not pixel noise."""
+    if g.index not in meas.repeated:
+        return 0.0
+    r = meas.repeated.index(g.index)
+    drift = meas.drift(r)
+    return drift.var if drift.material(float(np.median(meas.var_all[g.index][meas.interior]))) else 0.0
 
 
 def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarray, classes: np.ndarray,
@@ -127,6 +194,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
                   near_fraction: float = 0.01) -> VarianceBins:
     """Mean level and variance of normal pixels in ``n_bins`` quantile bins of level per repeated condition.
 
+    The frames' level changes, where material, are removed from the variances (:func:`level_changes`).
     A condition in which more than ``near_fraction`` of the normal pixels touched 0 or the full scale in some
     frame (those are not usable) is near a bound: there a pixel's own mean and its temporal variance are
     correlated (the readout's noise is skewed by the bound), so binning on the pixel's own mean would select on
@@ -141,7 +209,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
         if m.sum() < 30:
             continue
         lev = meas.mean_all[g.index][m]
-        v = meas.var_all[g.index][m]
+        v = meas.var_all[g.index][m] - level_changes(meas, g)
         normal = meas.interior & (classes[r] == NORMAL)
         near = scene is not None and float(np.mean(~usable[r][normal])) > near_fraction
         if near:
@@ -168,3 +236,89 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     return VarianceBins(np.array([x[0] for x in rows], int), np.array([x[1] for x in rows]),
                         np.maximum(np.array([x[2] for x in rows]), 1e-12), np.array([x[3] for x in rows], float),
                         np.array(spread).reshape(len(rows), n_spread), float(meas.full_scale))
+
+
+#: Side of the scene estimate that measures a pattern's size: wide enough to leave almost all of a pattern
+#: that varies from pixel to pixel (its own share of a white pattern is Σw² ≈ 0.4 %), still exact for a
+#: quadratic scene (vignetting).
+WIDE_SCENE = 31
+#: Side of the tiles the interval of a pattern's size resamples (far larger than the noise's correlation length).
+SIZE_TILE = 16
+#: Tile-bootstrap replicates for that interval.
+N_BOOT = 400
+
+
+def wide_scene(images: np.ndarray, size: int = WIDE_SCENE) -> np.ndarray:
+    """The leave-one-out quadratic scene estimate of ``size × size`` of each image of a stack ``(R, H, W)``,
+    reflecting at the edges (as :func:`~forensics.check.scene.scene_estimate`'s kernel), by FFT: the cost does
+    not grow with the window."""
+    kernel = loo_quadratic_kernel(size)  # symmetric: correlation and convolution agree
+    e = size // 2
+    padded = np.pad(images, ((0, 0), (e, e), (e, e)), mode="symmetric")  # ndimage's "reflect"
+    return signal.fftconvolve(padded, kernel[None], mode="valid", axes=(1, 2))
+
+
+def wide_residuals(meas: Measurements, px: PixelData) -> tuple[np.ndarray, np.ndarray]:
+    """Both halves' residuals from the wide scene estimate, known defects filled in first (computed once per
+    pixel data: they depend on nothing a fit changes)."""
+    if "wide" not in px.derived:
+        px.derived["wide"] = tuple(
+            mean - wide_scene(np.where(px.defect_mask, fill, mean))
+            for mean, fill in ((meas.mean_a, px.fill_a), (meas.mean_b, px.fill_b)))
+    return px.derived["wide"]
+
+
+@dataclass(frozen=True)
+class PatternSize:
+    """The size of a pixel-local pattern as the frames show it: its standard deviation and standard error."""
+
+    sigma: float
+    se: float
+    tiles: int
+
+
+def pattern_size(meas: Measurements, px: PixelData, x: np.ndarray, ok: np.ndarray,
+                 rng: np.random.Generator) -> PatternSize | None:
+    """The size of a pixel-local pattern whose effect on each pixel's mean is ``x`` per unit (``(R, H, W)``,
+    e.g. the scene level for a relative gain), from the split-half cross-product of the residuals from a wide
+    scene estimate (:data:`WIDE_SCENE`).
+
+    The pixel channel's 7 × 7 scene estimate absorbs part of a spatially correlated pattern (demosaicing
+    spreads each pixel's gain over its neighbours); the wide one leaves almost all of it.  The two halves'
+    noises are independent, so the cross-product estimates the pattern's variance whatever the noise floor:
+    σ² = Σ_p u_a·u_b / Σ_p a_p², with u = Σ_r x·w·residual and a = Σ_r x²·w per pixel (w: the pixel
+    channel's weights), over the pixels at least half the wide window from the frame's edge.  The standard
+    error is from a bootstrap over ``SIZE_TILE`` tiles (spatially correlated noise stays within a tile).  Known
+    defects are filled in before the wide estimate (a defect would
+    otherwise leak into hundreds of neighbours); only the pixels in ``ok`` count.  None when ``x`` has no weight
+    there.
+    """
+    xw = np.where(ok, x * px.weight, 0.0)
+    res_a, res_b = wide_residuals(meas, px)
+    ua, ub = np.sum(xw * res_a, axis=0), np.sum(xw * res_b, axis=0)
+    a = np.sum(np.where(ok, x * xw, 0.0), axis=0)
+    # near the frame's edge the wide window reflects the scene, which is then no longer quadratic in it
+    inner = np.zeros(meas.shape, bool)
+    e = WIDE_SCENE // 2
+    inner[e:meas.shape[0] - e, e:meas.shape[1] - e] = True
+    used = (a > 0) & inner
+    if not used.any():
+        return None
+    h, w = meas.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    tiles = ((yy // SIZE_TILE) * (-(-w // SIZE_TILE)) + xx // SIZE_TILE)[used]
+    _, tix = np.unique(tiles, return_inverse=True)
+    n_tiles = int(tix.max()) + 1
+    s_g = np.bincount(tix, (ua * ub)[used], minlength=n_tiles)
+    a_g = np.bincount(tix, (a * a)[used], minlength=n_tiles)
+    var = float(s_g.sum()) / float(a_g.sum())
+    sigma = math.sqrt(max(var, 0.0))
+    if n_tiles < 2:
+        return PatternSize(sigma, math.inf, n_tiles)
+    picks = rng.integers(0, n_tiles, size=(N_BOOT, n_tiles))
+    boot = s_g[picks].sum(axis=1) / a_g[picks].sum(axis=1)
+    se_var = float(np.std(boot, ddof=1))
+    # se of σ from that of σ² by the delta method, valid while σ² is clearly above 0; closer to 0, the σ that
+    # one se of σ² allows
+    se = se_var / (2.0 * sigma) if sigma**2 > 2.0 * se_var else math.sqrt(se_var)
+    return PatternSize(sigma, se, n_tiles)

@@ -10,7 +10,14 @@ Pixel channel: predicted mean output of every repeated condition.
 
 The scene estimate of each pixel is mapped to incident light through the inverse of the typical pixel's
 chain (tabulated once per parameter values and condition) and sent through the device's chain
-(:meth:`~forensics.sensor.model.Device.mean_signal`).
+(:meth:`~forensics.sensor.model.Device.mean_signal`).  Frames known to be dark (the manifest's ``subject``
+is ``dark``) have zero light: their prediction is the chain's output for no light (black level, dark
+signal, defects), not the neighbours'.  Near 0 or the full scale the predicted mean is that of the quantised
+readout conditional on no frame touching a bound (the pixels that touched one are not usable), from the
+model's own noise (:func:`forensics.stats.censored.readout_moments`).
+
+Noise laws (:meth:`~forensics.sensor.model.Effect.variance`) see the signal above the readout's offset (the
+black level): the output level less :attr:`~forensics.sensor.model.FrameContext.readout_offset`.
 """
 from __future__ import annotations
 
@@ -19,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from forensics.check.classes import QUANT_VAR
+from forensics.check.classes import QUANT_VAR, dark_groups
 from forensics.check.measurements import Group, Measurements
 from forensics.check.pixels import PixelData, VarianceBins
 from forensics.sensor.catalogue import DefectCatalogue
@@ -43,6 +50,8 @@ class Predictor:
         self.meas = meas
         self.rgroups = list(rgroups)
         self.shape = meas.shape
+        self.dark = dark_groups(self.rgroups)
+        self.dark_all = dark_groups(meas.groups)
         self._chain_cache: dict[Any, Any] = {}
 
     def table(self, typical: Device, tctx: FrameContext) -> tuple[np.ndarray, np.ndarray] | None:
@@ -79,8 +88,9 @@ class Predictor:
         clean, typical = intact(device), device.typical()
         ref = np.empty_like(meas.mean_all)
         for g in meas.groups:
-            ref[g.index] = clean.mean_signal(self.light(typical, context(typical, g), meas.scene_all[g.index]),
-                                             context(clean, g))
+            light = (np.zeros(self.shape) if self.dark_all[g.index]
+                     else self.light(typical, context(typical, g), meas.scene_all[g.index]))
+            ref[g.index] = clean.mean_signal(light, context(clean, g))
         return ref
 
     def predict(self, device: Device, pixels: PixelData, half: str = "a", clip: bool = True) -> np.ndarray:
@@ -102,6 +112,9 @@ class Predictor:
         cache = pixels.light_cache
         for r, g in enumerate(self.rgroups):
             ctx = context(device, g)
+            if self.dark[r]:  # no light: the chain's own output, whatever the neighbours read
+                out[r] = device.mean_signal(np.zeros(self.shape), ctx)
+                continue
             table = self.table(typical, context(typical, g))
             if table is None:
                 light = scenes[r]
@@ -125,8 +138,25 @@ class Predictor:
                 mu = device.mean_signal(light.reshape(h, w), ctx)
             out[r] = mu
         if clip:
-            np.clip(out, 0.0, self.meas.full_scale, out=out)
+            for r, g in enumerate(self.rgroups):
+                out[r] = censored_mean(out[r], context(device, g), self.meas.full_scale)
         return out
+
+
+def censored_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: float = 6.0) -> np.ndarray:
+    """The mean readout of pixels of latent mean ``mu`` that never touched 0 or ``full_scale``: ``mu`` itself
+    away from the bounds; within ``reach`` σ of one, the truncated mean of the quantised readout (σ from the
+    model's noise effects)."""
+    noise = [e for e in ctx.device.model.effects if e.stage == Stage.NOISE]
+    out = np.clip(mu, 0.0, full_scale)
+    hi = round(float(full_scale))
+    sd = np.sqrt(noise_variance(noise, out, ctx) + QUANT_VAR)
+    near = (out < reach * sd + 1.0) | (out > hi - reach * sd - 1.0)
+    if hi < 3 or not near.any():
+        return out
+    sigma = np.sqrt(noise_variance(noise, mu[near], ctx))
+    out[near] = readout_moments(mu[near], sigma, 0, hi, truncate=True)[0]
+    return out
 
 
 def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effects: Sequence[Effect],
@@ -137,17 +167,20 @@ def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effec
     for r in np.unique(bins.group):
         sel = bins.group == r
         ctx = context(device, rgroups[r])
-        for e in noise_effects:
-            out[sel] += np.asarray(e.variance(bins.level[sel], ctx), float)
+        out[sel] += noise_variance(noise_effects, bins.level[sel], ctx)
         if bins.spread is not None and bins.full_scale is not None:
             near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, out)
     return np.maximum(out, 1e-12)
 
 
-def _noise_var(noise_effects: Sequence[Effect], level: np.ndarray, ctx: FrameContext) -> np.ndarray:
+def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: FrameContext) -> np.ndarray:
+    """Temporal variance the noise effects add at output ``level`` (their laws see the level above the
+    readout's offset, :attr:`~forensics.sensor.model.FrameContext.readout_offset`)."""
+    level = np.asarray(level, float)
+    above = level - (ctx.readout_offset if ctx is not None else 0.0)
     out = np.zeros(level.shape)
     for e in noise_effects:
-        out += np.asarray(e.variance(level, ctx), float)
+        out += np.asarray(e.variance(above, ctx), float)
     return np.maximum(out, 0.0)
 
 
@@ -168,14 +201,14 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
     if not near.any() or hi < 3:
         return
     m = spread[near]
-    s = np.sqrt(_noise_var(noise_effects, np.clip(m, lo, hi), ctx) + QUANT_VAR)
+    s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx) + QUANT_VAR)
     a, b = m - 10.0 * s - 2.0, m + 10.0 * s + 2.0
     for _ in range(iterations):
         mid = 0.5 * (a + b)
-        mean, _ = readout_moments(mid, np.sqrt(_noise_var(noise_effects, mid, ctx)), lo, hi)
+        mean, _ = readout_moments(mid, np.sqrt(noise_variance(noise_effects, mid, ctx)), lo, hi)
         below = mean < m
         a = np.where(below, mid, a)
         b = np.where(below, b, mid)
     mu = 0.5 * (a + b)
-    _, var = readout_moments(mu, np.sqrt(_noise_var(noise_effects, mu, ctx)), lo, hi, truncate=True)
+    _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx)), lo, hi, truncate=True)
     out[idx[near]] = var.mean(axis=1)

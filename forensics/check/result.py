@@ -10,11 +10,34 @@ import numpy as np
 
 @dataclass
 class ParamEstimate:
+    """A fitted parameter: its value and standard error, or why the data do not determine it.
+
+    ``identifiable`` False: the data carry no information on it or it trades off exactly against other
+    parameters (``note`` says which); its value is then where the fit started and ``se`` is None.
+    ``converged`` False: the fit did not settle; the value is not a result.
+    """
+
     effect: str
     name: str
     value: float
     se: float | None
     unit: str = ""
+    identifiable: bool = True
+    converged: bool = True
+    note: str = ""
+
+    @property
+    def label(self) -> str:
+        return f"{self.effect}.{self.name}"
+
+    def summary(self) -> str:
+        """``value ± se unit``, or why there is no value."""
+        if not self.converged:
+            return f"did not converge ({self.note})" if self.note else "did not converge"
+        if not self.identifiable:
+            return f"not identifiable from these data ({self.note})"
+        se = "" if self.se is None else f" ± {self.se:.4g}"
+        return f"{self.value:.6g}{se} {self.unit}".rstrip()
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

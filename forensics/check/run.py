@@ -13,7 +13,7 @@ import numpy as np
 from forensics._shared.errors import UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
-from forensics.check.classes import CLASSES, STK
+from forensics.check.classes import CLASSES
 from forensics.check.design import design_warnings, light_levels
 from forensics.check.diagnosis import diagnose
 from forensics.check.evidence import Evidence
@@ -21,16 +21,51 @@ from forensics.check.fit import FittedModel, fit_model
 from forensics.check.gof import class_errors, covariate_checks, growth_gof, pixel_gof, spatial_gof, variance_gof
 from forensics.check.measurements import Measurements, load_measurements
 from forensics.check.result import CheckResult, CheckRow, PlotData
+from forensics.check.pixels import uses_scene
 from forensics.check.scene import KERNEL_VAR
 from forensics.check.structure import residual_structure
-from forensics.io.dataset import Dataset
+from forensics._shared.errors import InputError
+from forensics.io.dataset import Dataset, open_dataset
+from forensics.io.images import is_raw, read_raw
 from forensics.sensor.catalogue import PARTIAL, STUCK
+from forensics.sensor.effects import BlackLevel
 from forensics.sensor.model import EFFECTS, Effect, make_effect
 
 
-def base_model() -> list[Effect]:
-    """The base model: every registered effect whose role is ``base``, at its defaults."""
-    return [cls() for cls in EFFECTS.values() if cls.role == "base"]
+def base_model(black_level: float | None = None) -> list[Effect]:
+    """The base model: every registered effect whose role is ``base``, at its defaults; with ``black_level``
+    (from metadata) the black level is known rather than fitted."""
+    effects = [cls() for cls in EFFECTS.values() if cls.role == "base"]
+    if black_level is not None:
+        effects = [BlackLevel(level=float(black_level), known=True) if isinstance(e, BlackLevel) else e
+                   for e in effects]
+    return effects
+
+
+def metadata_black_level(data: Dataset | str | Path) -> float | None:
+    """The black level the files or the manifest state, if any: the manifest's ``black_level`` column (one
+    value for every frame) or a raw file's black level (mean over the CFA channels).
+
+    Raises
+    ------
+    InputError
+        The manifest gives different black levels for different frames.
+    """
+    ds = data if isinstance(data, Dataset) else open_dataset(data)
+    values = {f.extra.get("black_level") for f in ds.frames} - {None, ""}
+    if values:
+        try:
+            levels = {float(v) for v in values}
+        except ValueError as exc:
+            raise InputError(f"{ds.root}: manifest column 'black_level' must be a number in DN ({exc})") from exc
+        if len(levels) > 1:
+            raise InputError(f"{ds.root}: manifest column 'black_level' differs between frames "
+                             f"({', '.join(f'{v:g}' for v in sorted(levels))}); give one value or leave it empty")
+        return levels.pop()
+    first = ds.frames[0].path if len(ds) else None
+    if first is not None and is_raw(first):
+        return float(np.mean(read_raw(first).black_level))
+    return None
 
 
 def candidate_names(model_effects: Sequence[Effect]) -> list[str]:
@@ -63,6 +98,14 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
                                       (value**2 - 1) / math.sqrt(2 / max(n, 1))))
     candidates, notes = diagnose(ev, fitted, candidate_names(fitted.effects))
     warn = list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
+    unsettled = fitted.not_converged
+    if unsettled:
+        # not a result: no error or gof is reported for a fit that did not settle
+        warn.insert(0, f"the fit did not converge ({', '.join(unsettled)} still moving): no error or goodness of "
+                       "fit is reported for this model")
+        classes = {k: None for k in classes}
+        vals, err_var, err_growth = [], None, None
+        gof_pixel = gof_var = gof_growth = gof_spatial = None
     return CheckResult(
         effects=[e.key for e in fitted.effects],
         params=fitted.params,
@@ -84,7 +127,7 @@ def _plot_data(ev: Evidence, fitted: FittedModel, consistency: np.ndarray, covar
     meas, px, counts = ev.meas, fitted.pixels, ev.defects.counts
     r = meas.mean_b - fitted.mu_b
     nb = meas.n_b[:, None, None].astype(float)
-    zb = r / np.sqrt(px.floor * (1.0 + np.where(px.classes == STK, 0.0, KERNEL_VAR)) / nb)
+    zb = r / np.sqrt(px.floor * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         residual_map = np.nanmean(np.where(ev.usable, r, np.nan), axis=0)
@@ -120,7 +163,7 @@ def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effec
             raise UsageError(f"the effect '{e.key}' is already in the model")
         names.append(e.key)
     meas = data if isinstance(data, Measurements) else load_measurements(data, progress=progress)
-    return Evidence(meas, rng=rng, n_sim=n_sim), extra
+    return Evidence(meas, rng=rng, n_sim=n_sim, black_level=metadata_black_level(meas.root)), extra
 
 
 def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
@@ -148,7 +191,7 @@ def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect]
     CheckResult
     """
     ev, extra = prepare(data, add, rng, n_sim, progress)
-    result = run_check(ev, [*base_model(), *extra])
+    result = run_check(ev, [*base_model(ev.black_level), *extra])
     if extra and baseline:
-        result.baseline = run_check(ev, base_model())
+        result.baseline = run_check(ev, base_model(ev.black_level))
     return result

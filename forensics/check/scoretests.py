@@ -1,22 +1,33 @@
 """The channels' tests of a candidate's signature against the fitted model's residuals.
 
-pixel — Gaussian score (Lagrange-multiplier) test for global parameters, likelihood ratio of a per-block
-random effect for fixed patterns; variance — score test on the log binned variances; growth — Poisson
+pixel — Gaussian score (Lagrange-multiplier) test for global parameters; for fixed patterns, the likelihood
+ratio of a per-block random effect calibrated by the split-half cross-product (:func:`split_half_test`: a
+pattern is what the two halves of the repeats share, so neither its presence nor the noise scale depends on the
+noise floor, and the statistic's variance is measured over tiles, so spatially correlated noise does not
+inflate it); variance — score test on the log binned variances; growth — Poisson
 score test with a quasi-Poisson dispersion; spatial — projection of Ripley's L on the candidate's
 direction, calibrated by the null simulations.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import optimize, stats
 
-from forensics.check.classes import STK
+from forensics.check.classes import NORMAL, STK
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
+from forensics.check.pixels import pattern_size
 from forensics.check.result import ChannelTest
 from forensics.check.signatures import Signature
+
+#: Side of the square tiles over which the split-half statistic's variance is measured: much larger than the
+#: correlation length of demosaiced, JPEG-compressed noise (a few pixels), small enough for ~1000 tiles at 512².
+TILE = 16
+#: Key of the random stream of that bootstrap (:meth:`forensics.check.streams.Streams.stream`; 1 and 7 are taken).
+PATTERN_SIZE_STREAM = 11
 
 
 def random_effect_lr(zb: np.ndarray, ab: np.ndarray) -> tuple[float, float]:
@@ -40,13 +51,89 @@ def random_effect_lr(zb: np.ndarray, ab: np.ndarray) -> tuple[float, float]:
     return max(0.0, -2.0 * res.fun), math.exp(res.x)
 
 
+@dataclass(frozen=True)
+class SplitHalf:
+    """The split-half cross-product test of a fixed pattern.
+
+    ``t`` = Σ_b u_a·u_b / Σ_b a_b² estimates the pattern's variance per block (in the signature's units, as
+    the residuals show it), with u_a, u_b the signature-weighted sums of the two halves' residuals over block b
+    and a_b the signature's weight there.  Its null mean is 0 whatever the noise floor, because the halves'
+    noises are independent.  ``z`` = t / se(t), with se(t) from the spread of the statistic over
+    ``tiles`` tiles of ``TILE`` × ``TILE`` pixels.  ``noise`` = Σ_b (u_a² − u_a·u_b) / Σ_b a_b is the noise
+    variance of the first half's residuals relative to the floor (1 when the floor is right), also free of the
+    floor; ``inflation`` is the tiles' variance of the statistic over the variance it would have if blocks were
+    independent (≈ 1 for white noise; more when the noise is spatially correlated).
+    """
+
+    z: float
+    t: float
+    se: float
+    tiles: int
+    noise: float = 1.0
+    inflation: float = 1.0
+
+
+def tile_index(shape: tuple[int, int], size: int = TILE) -> np.ndarray:
+    """Index of each pixel's ``size × size`` tile (row-major)."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    return (yy // size) * (-(-w // size)) + xx // size
+
+
+def block_tiles(blocks: np.ndarray, tiles: np.ndarray, n_blocks: int) -> np.ndarray:
+    """The tile of every block: that of its first pixel (a block spanning tiles — a column — goes whole to one
+    tile, so blocks never straddle the statistic's units)."""
+    m = blocks >= 0
+    first = np.full(n_blocks, np.iinfo(np.int64).max, np.int64)
+    flat = np.flatnonzero(m.ravel())
+    np.minimum.at(first, blocks.ravel()[flat], flat)
+    out = np.zeros(n_blocks, np.int64)
+    used = first < np.iinfo(np.int64).max
+    out[used] = tiles.ravel()[first[used]]
+    return out
+
+
+def split_half_test(ua: np.ndarray, ub: np.ndarray, ab: np.ndarray, tile: np.ndarray) -> SplitHalf:
+    """The split-half cross-product test over blocks (``ua``, ``ub``: each half's signature-weighted residual
+    sum per block; ``ab``: the signature's weight per block; ``tile``: each block's tile).
+
+    The variance of Σ u_a·u_b is measured, not assumed: the sum over each tile less its expected share of the
+    total (t·Σ_tile a_b², so that a present pattern does not count as noise), squared and summed over tiles.
+    Tiles are far larger than the noise's correlation length, so their sums are nearly independent.
+    """
+    c = ua * ub
+    a2 = ab * ab
+    _, tile = np.unique(tile, return_inverse=True)
+    n_tiles = int(tile.max()) + 1 if tile.size else 0
+    total_a2 = float(a2.sum())
+    if n_tiles < 2 or total_a2 <= 0:
+        return SplitHalf(0.0, 0.0, math.inf, n_tiles)
+    s_g = np.bincount(tile, c, minlength=n_tiles)
+    a_g = np.bincount(tile, a2, minlength=n_tiles)
+    t = float(s_g.sum()) / total_a2
+    var = n_tiles / (n_tiles - 1) * float(np.sum((s_g - t * a_g) ** 2))
+    se = math.sqrt(var) / total_a2 if var > 0 else math.inf
+    independent = float(np.sum((c - t * a2) ** 2))
+    inflation = var / independent if independent > 0 else 1.0
+    noise = float(np.sum(ua * ua - c)) / float(ab.sum()) if ab.sum() > 0 else 1.0
+    return SplitHalf(t / se if se > 0 else 0.0, t, se, n_tiles, noise, inflation)
+
+
 def score_pixel(ev: Evidence, fitted: FittedModel, sigs: list[Signature], z: np.ndarray, n_obs: int) -> list[ChannelTest]:
+    """The pixel channel's tests of the candidates' signatures against the fitted model's residuals ``z``
+    (first half, weighted, projected off the model's own pixel-local patterns).
+
+    A fixed pattern (a signature with blocks) is tested as a random effect calibrated by the split halves
+    (:func:`_pattern_test`); global parameters by one joint score test.
+    """
     px = fitted.pixels
     tests = []
     sw = np.sqrt(px.weight)
     keep = ev.usable & (px.classes != STK)
     glob_cols = []
     glob_names = []
+    zb = None
+    tiles = tile_index(ev.meas.shape)
     for s in sigs:
         raw = np.where(keep, s.x * sw, 0.0)
         raw_norm = float(np.sum(raw**2))
@@ -55,19 +142,9 @@ def score_pixel(ev: Evidence, fitted: FittedModel, sigs: list[Signature], z: np.
         xp = fitted.projector.project(raw) if s.pixel_local or s.blocks is None else raw
         xp = np.where(keep, xp, 0.0)
         if s.blocks is not None:
-            blk = np.broadcast_to(s.blocks[None], xp.shape)
-            m = (blk >= 0) & keep
-            nblk = int(s.blocks.max()) + 1
-            zb_num = np.bincount(blk[m], (xp * z)[m], minlength=nblk)
-            ab = np.bincount(blk[m], (xp * xp)[m], minlength=nblk)
-            used = ab > 1e-12 * max(ab.max(), 1e-300)
-            zb = np.where(used, zb_num / np.sqrt(np.where(used, ab, 1)), 0.0)
-            lr, t = random_effect_lr(zb[used], ab[used])
-            frac = float(np.sum(ab)) / raw_norm
-            tests.append(ChannelTest("pixel", lr, 1, n_obs,
-                                     f"{s.name}: random-effect LR {lr:.4g} over {int(used.sum())} blocks "
-                                     f"(typical size {math.sqrt(t):.3g}; {frac:.0%} of the signature survives the "
-                                     "model's own parameters)", boundary=True, absorbed=frac < 0.05))
+            if zb is None:
+                zb = second_half_z(ev, fitted, keep)
+            tests.append(_pattern_test(ev, fitted, s, xp, z, zb, tiles, keep, raw_norm, n_obs))
         else:
             frac = float(np.sum(xp**2)) / raw_norm
             if frac < 1e-6:
@@ -86,6 +163,52 @@ def score_pixel(ev: Evidence, fitted: FittedModel, sigs: list[Signature], z: np.
                                  f"{names}: score LM {lm:.4g} on {n_obs} pixel means ({frac:.0%} of the signature "
                                  "survives the model's own parameters)", absorbed=frac < 0.05))
     return tests
+
+
+def second_half_z(ev: Evidence, fitted: FittedModel, keep: np.ndarray) -> np.ndarray:
+    """The second half's residuals in the first half's units (√weight), projected off the model's own
+    pixel-local patterns like the first half's: what a pattern missing from the model leaves in both halves."""
+    px = fitted.pixels
+    r = ev.meas.mean_b - fitted.mu_b
+    return np.where(keep, fitted.projector.project(np.where(keep, r, 0.0) * np.sqrt(px.weight)), 0.0)
+
+
+def _pattern_test(ev: Evidence, fitted: FittedModel, s: Signature, xp: np.ndarray, z: np.ndarray, zb: np.ndarray,
+                  tiles: np.ndarray, keep: np.ndarray, raw_norm: float, n_obs: int) -> ChannelTest:
+    """A fixed pattern's test: the random effect's likelihood ratio on the first half, with the noise scale and
+    the ratio's inflation by spatially correlated noise both measured by the split halves
+    (:func:`split_half_test`), and zero unless the halves share the pattern (split-half z > 0); for a
+    pixel-local pattern, its size as the frames show it with an interval (:func:`pattern_size`)."""
+    blk = np.broadcast_to(s.blocks[None], xp.shape)
+    m = (blk >= 0) & keep
+    nblk = int(s.blocks.max()) + 1
+    ua = np.bincount(blk[m], (xp * z)[m], minlength=nblk)
+    ub = np.bincount(blk[m], (xp * zb)[m], minlength=nblk)
+    ab = np.bincount(blk[m], (xp * xp)[m], minlength=nblk)
+    used = ab > 1e-12 * max(ab.max(), 1e-300)
+    half = split_half_test(ua[used], ub[used], ab[used], block_tiles(s.blocks, tiles, nblk)[used])
+    # the random effect's likelihood ratio, made free of the floor and of the noise's spatial correlation by the
+    # split halves: residuals rescaled by the noise the halves' difference shows, the ratio divided by the
+    # statistic's measured inflation (a quasi-likelihood ratio); nothing when the halves share no pattern
+    scale = half.noise if math.isfinite(half.noise) and half.noise > 0 else 1.0
+    zs = np.where(used, ua / np.sqrt(np.where(used, ab * scale, 1)), 0.0)
+    lr, t_lr = random_effect_lr(zs[used], ab[used])
+    inflation = max(half.inflation, 1.0)
+    lm = lr / inflation if half.z > 0 else 0.0
+    frac = float(np.sum(ab)) / raw_norm
+    size = ""
+    if s.pixel_local:
+        est = pattern_size(ev.meas, fitted.pixels, s.x, keep & (fitted.pixels.classes == NORMAL),
+                           ev.streams.stream(PATTERN_SIZE_STREAM))
+        if est is not None and half.z > 0:
+            kept = half.t / est.sigma**2 if est.sigma > 0 else math.nan
+            size = (f"; pattern σ {est.sigma:.3g} ± {est.se:.2g} as the frames show it "
+                    f"({min(kept, 9.99):.0%} of its variance left by the scene estimate)")
+    detail = (f"{s.name}: random-effect LR {lm:.4g} over {int(used.sum())} blocks (typical size "
+              f"{math.sqrt(t_lr * scale):.3g}; noise {scale:.3g}× the floor, LR ÷ {inflation:.3g} for its spatial "
+              f"correlation); split-half z {half.z:+.3g} over {half.tiles} tiles of {TILE}×{TILE}{size}; "
+              f"{frac:.0%} of the signature survives the model's own parameters")
+    return ChannelTest("pixel", lm, 1, n_obs, detail, boundary=True, absorbed=frac < 0.05)
 
 
 def score_variance(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> list[ChannelTest]:

@@ -242,4 +242,4 @@ def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Ef
     SelectionResult
     """
     ev, extra = prepare(data, add, rng, n_sim, progress)
-    return forward_select(ev, [*base_model(), *extra], max_steps=max_steps)
+    return forward_select(ev, [*base_model(ev.black_level), *extra], max_steps=max_steps)

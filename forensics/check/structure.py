@@ -50,6 +50,7 @@ from forensics.check.classes import NORMAL
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
 from forensics.check.result import StructureResult, StructureTest
+from forensics.check.pixels import uses_scene
 from forensics.check.scene import KERNEL, KERNEL_VAR
 
 #: A structure is named when its Holm-adjusted p is below this.
@@ -242,7 +243,7 @@ def residual_structure(ev: Evidence, fitted: FittedModel) -> StructureResult:
     nb = meas.n_b[:, None, None].astype(float)
     r_a = meas.mean_a - fitted.mu_a
     r_b = meas.mean_b - fitted.mu_b
-    var_b = px.floor * (1.0 + KERNEL_VAR) / nb
+    var_b = px.floor * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb
     z_a, z_b = r_a / np.sqrt(px.var_a), r_b / np.sqrt(var_b)
     normal = ev.usable & (px.classes == NORMAL)
     fixed = normal.all(axis=0)

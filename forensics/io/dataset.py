@@ -11,7 +11,11 @@ The manifest has a header row and the columns
 ``exposure_s`` exposure time in seconds
 ``iso``        ISO sensitivity
 ``temperature_c`` sensor or ambient temperature in °C
-``subject``    what the frame shows (free text)
+``subject``    what the frame shows (free text); ``dark`` (any case) means the frame
+               was taken without light (lens capped, shutter closed): the model check
+               uses such frames as zero light
+``black_level`` the readout's black level in DN, when known (e.g. from the camera's raw
+               metadata); the model check then uses it instead of estimating it
 ============== =========================================================
 
 Any other column is kept in :attr:`Frame.extra`.  A value missing from the
@@ -40,8 +44,15 @@ from forensics.io.images import IMAGE_EXTENSIONS, ImageInfo, read_image, read_in
 from forensics._shared.progress import Progress, no_progress
 
 MANIFEST = "manifest.csv"
+#: The ``subject`` of frames taken without light (compared case-insensitively).
+DARK_SUBJECT = "dark"
 STANDARD_COLUMNS = ("file", "device", "captured", "exposure_s", "iso", "temperature_c", "subject")
 _NUMERIC = ("exposure_s", "iso", "temperature_c")
+
+
+def is_dark_subject(subject: str | None) -> bool:
+    """Whether a frame's ``subject`` says it was taken without light (:data:`DARK_SUBJECT`)."""
+    return subject is not None and subject.strip().lower() == DARK_SUBJECT
 
 
 def split_epochs(times: np.ndarray, gap_years: float) -> tuple[np.ndarray, np.ndarray]:

@@ -3,8 +3,11 @@
 Base model of the reference paper (eq. 5 with Poisson arrivals): ``growth``
 (defect arrivals), ``offset`` (partially stuck, y = i + d) and ``stuck``
 (y = c); saturation and quantisation are done by the model.  ``read_noise`` is
-the constant temporal noise that any measurement shows.  The others are the
-candidate effects a real sensor may add.
+the constant temporal noise that any measurement shows and ``black_level`` the
+constant the readout adds under every pixel (stuck ones included).  The others
+are the candidate effects a real sensor may add; each acts where the physics
+acts: a dark signal on every pixel (hot pixels are its tail), an analog gain on
+the whole electron signal and on the noise that arises before it.
 """
 from __future__ import annotations
 
@@ -16,27 +19,16 @@ import numpy as np
 from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
 
 from forensics.sensor.model import (
-
     Device,
-
     Effect,
-
     FrameContext,
-
     Pattern,
-
     Stage,
-
     param,
-
     per_pixel,
-
     pixel_view,
-
     record_blocks,
-
     register_effect,
-
 )
 from forensics.sensor.evidence import Evidence
 
@@ -200,6 +192,38 @@ class ReadNoise(Effect):
         return signal
 
 
+@register_effect
+@dataclass
+class BlackLevel(Effect):
+    """The readout's black level (pedestal): a constant added to every pixel after the pixel and its noise.
+
+    A pixel that collected nothing reads ``level``; a stuck pixel reads ``level + c``.  Multiplicative effects
+    (PRNU, gain, a response curve) act on the signal above it, and noise laws on the signal without it.  The
+    checker fits it where the data can tell it apart from the light — frames known to be dark
+    (:data:`forensics.io.dataset.DARK_SUBJECT`), or through a multiplicative effect — and says when they
+    cannot; a value from the files' metadata or the manifest's ``black_level`` column is used as known.
+    """
+
+    name = "black_level"
+    description = "the readout adds a constant black level to every pixel (stuck ones too): y = level + signal"
+    stage = Stage.READOUT
+    role = "base"
+
+    # bounded below by 0: with nothing that fixes it (no dark frame, no clipping), a black level far below zero
+    # would let a per-pixel gain mimic a per-pixel offset, and the fit would drift there
+    level: float = param(0.0, "DN", "black level (pedestal) the readout adds to every pixel", free=True,
+                         bounds=(0.0, None))
+    known: bool = param(False, "", "True when the level comes from metadata (then it is not fitted)")
+
+    def free_params(self) -> list[str]:  # type: ignore[override]
+        return [] if self.known else ["level"]
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        if self.level:
+            signal += np.asarray(self.level, signal.dtype)
+        return signal
+
+
 # --------------------------------------------------------------------------- candidate effects
 @register_effect
 @dataclass
@@ -248,51 +272,86 @@ class Dsnu(Effect):
         return [Pattern("o", device.state[self.key].reshape(-1), np.arange(h * w).reshape(h, w), hyper="sigma_o")]
 
 
+def thermal_factor(ctx: FrameContext, effect: str, t_ref: float, t_double: float) -> float:
+    """Exposure time × 2^((T − T_ref)/T_d): what multiplies a dark-current rate in this frame."""
+    t = ctx.require("exposure_s", effect)
+    temp = ctx.require("temperature_c", effect)
+    return t * 2.0 ** ((temp - t_ref) / t_double)
+
+
 @register_effect
 @dataclass
 class DarkCurrent(Effect):
-    """Hot pixels: a dark signal proportional to exposure time, doubling every T_d degrees."""
+    """Dark signal on every pixel: an offset at zero exposure plus a dark current proportional to exposure time
+    and doubling every T_d degrees (EMVA 1288: μ_dark = μ_d0 + μ_therm).
+
+    Every pixel has a rate r̄ + r_p (a mean and a per-pixel non-uniformity, DCNU); hot pixels are the tail:
+    a partially stuck defect adds its own rate from its onset on.  The dark signal is charge in the pixel, so
+    it passes through everything after the ``DARK`` stage: an analog gain amplifies it (unlike the black level
+    the readout adds), shot noise includes it.
+    """
 
     name = "dark_current"
-    description = "defect signal grows with exposure and temperature: d = b + r·t·2^((T − T_ref)/T_d)"
+    description = ("dark signal on every pixel: D = D0 + (r̄ + r_p)·t·2^((T − T_ref)/T_d), hot (partially "
+                   "stuck) pixels adding their own rate")
     stage = Stage.DARK
     fields = ("exposure_s", "temperature_c")
 
-    rate_max: float = param(20.0, "DN/s", "maximum dark-current rate of a defect at T_ref (r ~ U[0, rate_max])",
-                            null=0.0)
+    offset: float = param(0.0, "DN", "dark signal at zero exposure (μ_d0, before any analog gain)", null=0.0,
+                          free=True)
+    rate: float = param(0.0, "DN/s", "mean dark-signal rate of a pixel at T_ref (r̄)", null=0.0, free=True,
+                        bounds=(0.0, None))
+    sigma_rate: float = param(0.0, "DN/s", "standard deviation of the per-pixel rate r_p (dark-current "
+                              "non-uniformity)", null=0.0)
+    rate_max: float = param(20.0, "DN/s", "largest extra rate of a hot (partially stuck) pixel at T_ref, "
+                            "r ~ U[0, rate_max]", null=0.0)
     t_ref: float = param(25.0, "°C", "reference temperature")
     t_double: float = param(7.0, "°C", "temperature increase that doubles the dark current (T_d)", free=True,
                             bounds=(1.0, 100.0))
 
+    @property
+    def _defect_key(self) -> str:
+        return f"{self.key}.rate"
+
     def realize(self, device: Device, rng: np.random.Generator) -> None:
+        device.state[self.key] = (self.sigma_rate * rng.standard_normal(device.model.shape)).astype(np.float32)
         cat = device.catalogue
-        cat.extra[f"{self.key}.rate"] = np.where(cat.kind == PARTIAL, rng.uniform(0, self.rate_max, len(cat)), 0.0)
+        cat.extra[self._defect_key] = np.where(cat.kind == PARTIAL, rng.uniform(0, self.rate_max, len(cat)), 0.0)
 
     def patterns(self, device: Device) -> list[Pattern]:
+        h, w = device.model.shape
+        if self.key not in device.state:
+            device.state[self.key] = np.zeros((h, w), np.float32)
         cat = device.catalogue
-        key = f"{self.key}.rate"
-        if key not in cat.extra:
-            cat.extra[key] = np.zeros(len(cat))
-        return [Pattern("rate", cat.extra[key], record_blocks(cat, device.model.shape, PARTIAL), hyper="rate_max",
-                        summary="max")]
+        if self._defect_key not in cat.extra:
+            cat.extra[self._defect_key] = np.zeros(len(cat))
+        return [Pattern("r", device.state[self.key].reshape(-1), np.arange(h * w).reshape(h, w), hyper="sigma_rate"),
+                Pattern("rate", cat.extra[self._defect_key], record_blocks(cat, device.model.shape, PARTIAL),
+                        hyper="rate_max", summary="max")]
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        factor = thermal_factor(ctx, self.name, self.t_ref, self.t_double)
+        per_px = ctx.device.state.get(self.key)
+        if self.offset or self.rate or per_px is not None:
+            dark = self.offset + (self.rate + (per_px if per_px is not None else 0.0)) * factor
+            signal += per_pixel(np.asarray(dark, signal.dtype), signal)
         sites = ctx.defects(PARTIAL)
-        if len(sites):
-            t = ctx.require("exposure_s", self.name)
-            temp = ctx.require("temperature_c", self.name)
-            dark = sites.extra[f"{self.key}.rate"] * t * 2.0 ** ((temp - self.t_ref) / self.t_double)
-            pixel_view(signal)[sites.y * ctx.shape[1] + sites.x] += dark.astype(np.float32)[:, None]
+        if len(sites) and self._defect_key in sites.extra:
+            pixel_view(signal)[sites.y * ctx.shape[1] + sites.x] += (sites.extra[self._defect_key]
+                                                                    * factor).astype(signal.dtype)[:, None]
         return signal
 
 
 @register_effect
 @dataclass
 class Gain(Effect):
-    """Analog gain: the signal (light and dark alike) scales with ISO."""
+    """Analog gain: the electron signal (light, dark signal, defects) scales with ISO, and so does the noise
+    that arises before the amplifier (shot noise; :class:`InputNoise`).  Stuck values, the black level and
+    read noise after the amplifier do not."""
 
     name = "gain"
-    description = "analog gain: the signal, defects included, scales as (ISO/ISO_ref)^exponent"
+    description = ("analog gain: the electron signal (light, dark, defects) and the noise before the amplifier "
+                   "scale as (ISO/ISO_ref)^exponent")
     stage = Stage.AMPLIFY
     fields = ("iso",)
 
@@ -300,9 +359,11 @@ class Gain(Effect):
     exponent: float = param(1.0, "", "power of the ISO ratio (1 for a linear amplifier)", null=0.0, free=True,
                             bounds=(-3.0, 3.0))
 
+    def amplification(self, ctx: FrameContext) -> float:
+        return float((ctx.require("iso", self.name) / self.iso_ref) ** self.exponent)
+
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
-        iso = ctx.require("iso", self.name)
-        signal *= np.float32((iso / self.iso_ref) ** self.exponent)
+        signal *= np.asarray(self.amplification(ctx), signal.dtype)
         return signal
 
 
@@ -326,23 +387,53 @@ class Nonlinearity(Effect):
 @register_effect
 @dataclass
 class ShotNoise(Effect):
-    """Photon shot noise: temporal variance grows with the signal, σ² = σ_read² + g·μ."""
+    """Shot noise of the collected electrons (photo- and thermal): σ² = g·A·μ.
+
+    μ is the signal above the black level and A the frame's analog gain (:attr:`FrameContext.amplification`):
+    N electrons read K·A·N DN with variance (K·A)²·N = K·A·μ, so ``g`` is the conversion gain K at the
+    reference gain."""
 
     name = "shot_noise"
-    description = "temporal variance grows with the mean signal: σ² = σ_read² + g·μ (photon shot noise)"
+    description = ("temporal variance grows with the signal above black: σ² = σ_read² + g·A·μ (shot noise of the "
+                   "electrons; A the analog gain)")
     stage = Stage.NOISE
 
-    g: float = param(0.5, "DN", "conversion gain: variance added per DN of mean signal", null=0.0, free=True,
-                     bounds=(0.0, None))
+    g: float = param(0.5, "DN", "conversion gain: variance added per DN of mean signal (at unit analog gain)",
+                     null=0.0, free=True, bounds=(0.0, None))
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         if self.g > 0:
-            sd = np.sqrt(np.float32(self.g) * np.maximum(signal, 0.0))
+            sd = np.sqrt(np.float32(self.g * ctx.amplification) * np.maximum(signal, 0.0))
             signal += sd * rng.standard_normal(signal.shape, dtype=np.float32)
         return signal
 
     def variance(self, mean: np.ndarray, ctx: FrameContext) -> np.ndarray | float:
-        return self.g * np.maximum(mean, 0.0)
+        return self.g * ctx.amplification * np.maximum(mean, 0.0)
+
+
+@register_effect
+@dataclass
+class InputNoise(Effect):
+    """Read noise arising before the analog gain (input-referred): its σ in DN scales with the gain, σ = σ_in·A.
+
+    Without an analog gain (A = 1) it is indistinguishable from ``read_noise``; with one, the dark frames'
+    temporal variance grows with ISO."""
+
+    name = "input_noise"
+    description = "temporal noise before the analog gain: σ² = σ_read² + (σ_in·A)², A the ISO gain"
+    stage = Stage.NOISE
+
+    sigma_in: float = param(1.0, "DN", "σ of the noise before the amplifier, in DN at unit analog gain", null=0.0,
+                            free=True, bounds=(0.0, None))
+
+    def variance(self, mean: np.ndarray, ctx: FrameContext) -> np.ndarray | float:
+        return (self.sigma_in * ctx.amplification) ** 2
+
+    def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        if self.sigma_in > 0:
+            signal += np.float32(self.sigma_in * ctx.amplification) * rng.standard_normal(signal.shape,
+                                                                                           dtype=np.float32)
+        return signal
 
 
 @register_effect

@@ -16,6 +16,7 @@ Effects apply in physical order, by :class:`Stage`:
 ``RESPONSE`` global response curve (non-linearity)
 ``STUCK``    stuck values override the signal
 ``NOISE``    temporal noise
+``READOUT``  the readout chain after the pixel and its noise (black level)
 then clipping to the bit depth's range and rounding, done by the model itself.
 
 Because every effect only reads the shared :class:`FrameContext` and
@@ -86,6 +87,7 @@ class Stage(enum.IntEnum):
     RESPONSE = 50
     STUCK = 60
     NOISE = 70
+    READOUT = 80
 
 
 # --------------------------------------------------------------------------- frames
@@ -107,6 +109,27 @@ class FrameContext:
     @property
     def full_scale(self) -> float:
         return self.device.model.full_scale
+
+    @property
+    def amplification(self) -> float:
+        """Analog gain of this frame: the product of the ``AMPLIFY`` effects' :meth:`Effect.amplification`
+        (1 without any).  Noise arising before the amplifier (photon shot noise) is amplified by it."""
+        out = 1.0
+        for effect in self.device.model.effects:
+            if effect.stage == Stage.AMPLIFY:
+                out *= effect.amplification(self)
+        return out
+
+    @property
+    def readout_offset(self) -> float:
+        """What the ``READOUT`` effects add to a zero signal (the black level): the output of a pixel that
+        collected nothing.  Noise laws act on the signal before it (:meth:`Effect.variance`)."""
+        out = np.zeros((1, 1))
+        rng = np.random.default_rng(0)
+        for effect in self.device.model.effects:
+            if effect.stage == Stage.READOUT:
+                out = effect.apply(out, self, rng)
+        return float(out[0, 0])
 
     def defects(self, kind: int) -> DefectCatalogue:
         """The defects of ``kind`` in effect at this frame's time (stuck overrides applied)."""
@@ -230,8 +253,17 @@ class Effect:
         return []
 
     def variance(self, mean: np.ndarray, ctx: FrameContext) -> np.ndarray | float:
-        """Temporal variance this effect adds to a pixel of mean output ``mean`` (``NOISE`` effects). Default 0."""
+        """Temporal variance (output DN²) this effect adds to a pixel whose mean signal at the ``NOISE`` stage is
+        ``mean`` — the output mean less the readout offset (:attr:`FrameContext.readout_offset`) — in the
+        frame ``ctx`` (``NOISE`` effects). Default 0."""
         return 0.0
+
+    def amplification(self, ctx: FrameContext) -> float:
+        """For ``AMPLIFY`` effects: the factor this effect applies to the signal in frame ``ctx``.
+
+        Default: the effect applied to a signal of one (exact for any purely multiplicative effect).
+        """
+        return float(self.apply(np.ones((1, 1)), ctx, np.random.default_rng(0))[0, 0])
 
     def expected_arrivals(self, device: "Device", times: Sequence[float],
                           threshold: dict[int, float]) -> dict[int, np.ndarray]:
@@ -491,8 +523,8 @@ class Device:
     def mean_signal(self, light: np.ndarray, ctx: FrameContext) -> np.ndarray:
         """The expected signal (no temporal noise, no clipping) for incident ``light``, in float64.
 
-        Runs every effect except the ``ARRIVAL`` and ``NOISE`` stages; model checking uses it as the
-        prediction of a pixel's mean output.
+        Runs every effect except the ``ARRIVAL`` and ``NOISE`` stages (``READOUT`` included: the black level is
+        part of the mean); model checking uses it as the prediction of a pixel's mean output.
         """
         signal = np.array(light, dtype=np.float64, copy=True)
         rng = np.random.default_rng(0)

@@ -54,7 +54,7 @@ def test_simulate_hidden_writes_truth(data, capsys):
 def test_check_json_keys_and_named_effect(data, capsys):
     assert main(["model", "check", str(data), "--json", "--seed", "1"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["effects"] == ["growth", "offset", "stuck", "read_noise"]
+    assert out["effects"] == ["growth", "offset", "stuck", "read_noise", "black_level"]
     assert set(out["error"]) == {"pixel", "classes", "variance", "growth"}
     assert set(out["gof"]) == {"pixel", "variance", "growth", "spatial"}
     first = out["candidates"][0]

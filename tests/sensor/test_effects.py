@@ -19,7 +19,8 @@ SHAPE = (32, 48)
 def test_registry_roles_and_names():
     names = set(EFFECTS)
     assert set(CANDIDATES) <= names
-    assert {n for n, c in EFFECTS.items() if c.role == "base"} == {"growth", "offset", "stuck", "read_noise"}
+    assert {n for n, c in EFFECTS.items() if c.role == "base"} == {"growth", "offset", "stuck", "read_noise",
+                                                                   "black_level"}
     for name in CANDIDATES:
         cls = EFFECTS[name]
         assert cls.role == "candidate"
@@ -73,10 +74,11 @@ def test_patterns_are_views_into_the_device():
     assert prnu.pixel_local and prnu.hyper == "sigma_k"
     prnu.values[:] = 0.0
     assert np.all(dev.state["prnu"] == 0.0)
-    rate = model.effect("dark_current").patterns(dev)[0]
-    idx = rate.blocks[rate.blocks >= 0]
-    assert len(idx) == np.sum(dev.catalogue.kind == PARTIAL)
-    assert rate.pixel_local
+    per_pixel, hot = model.effect("dark_current").patterns(dev)
+    assert per_pixel.pixel_local and per_pixel.blocks.size == SHAPE[0] * SHAPE[1]  # every pixel has a dark signal
+    idx = hot.blocks[hot.blocks >= 0]
+    assert len(idx) == np.sum(dev.catalogue.kind == PARTIAL)  # hot pixels add their own rate
+    assert hot.pixel_local
 
 
 def test_expected_arrivals_closed_form_matches_simulation():
@@ -161,3 +163,33 @@ def test_param_metadata_defaults():
     assert Toy.bounds("a") == (0.0, 5.0) and Toy.bounds("b") == (-np.inf, np.inf)
     assert Toy().nulled().a == 0.0 and Toy().nulled().b == 2.0
     assert isinstance(Pattern("x", np.zeros(3), np.array([[0, 1, 2]])).pixel_local, bool)
+
+
+def test_dark_signal_grows_with_exposure_and_temperature_and_is_amplified():
+    """D = D0 + r̄·t·2^((T − T_ref)/T_d) on every pixel, multiplied by the analog gain (charge in the pixel)."""
+    model = SensorModel((16, 16), bit_depth=12, effects=[DarkCurrent(offset=5.0, rate=10.0, sigma_rate=0.0,
+                                                                     rate_max=0.0, t_ref=25.0, t_double=8.0),
+                                                          make_effect("gain", iso_ref=100.0, exponent=1.0),
+                                                          make_effect("black_level", level=32.0)], t0=0.0)
+    dev = model.realize(np.random.default_rng(0), [0.0])
+    dark = np.zeros((16, 16))
+    for t, temp, iso in ((1.0, 25.0, 100.0), (2.0, 33.0, 100.0), (1.0, 25.0, 400.0)):
+        mean = dev.mean_signal(dark, dev.context(0.0, exposure_s=t, iso=iso, temperature_c=temp))
+        expect = 32.0 + iso / 100.0 * (5.0 + 10.0 * t * 2 ** ((temp - 25.0) / 8.0))
+        np.testing.assert_allclose(mean, expect, rtol=1e-6)
+
+
+def test_shot_noise_is_amplified_and_ignores_the_black_level():
+    """σ² = g·A·(μ − black): the electrons' Poisson noise scaled by the analog gain A."""
+    model = SensorModel((64, 64), bit_depth=16, effects=[make_effect("gain", iso_ref=100.0, exponent=1.0),
+                                                          make_effect("shot_noise", g=0.5),
+                                                          make_effect("black_level", level=100.0)], t0=0.0)
+    dev = model.realize(np.random.default_rng(0), [0.0])
+    ctx = dev.context(0.0, iso=200.0)
+    assert ctx.amplification == pytest.approx(2.0) and ctx.readout_offset == pytest.approx(100.0)
+    frames = np.stack([dev.signal(np.full((64, 64), 300.0, np.float32), ctx, np.random.default_rng(i))
+                       for i in range(40)])
+    assert frames.mean() == pytest.approx(100.0 + 600.0, abs=0.5)
+    # signal above black 600 DN at gain 2: σ² = 0.5·2·600 = 600; 64²·39 df → relative SE ≈ 0.0035
+    assert frames.var(axis=0, ddof=1).mean() == pytest.approx(600.0, rel=0.03)
+    assert model.effect("shot_noise").variance(np.array([600.0]), ctx)[0] == pytest.approx(600.0)

@@ -1,0 +1,72 @@
+"""Which parameters the data determine (forensics.check.identify), and the black level the check fits."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from forensics.check.identify import identify
+from forensics.check.run import base_model, prepare, resolve_effects, run_check
+from forensics.fixtures.hidden import Design, make_hidden
+
+
+def test_a_parameter_without_information_is_not_identifiable():
+    H = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 0.0]])
+    ident = identify(H, ["a", "b", "c"])
+    assert list(ident.identifiable) == [True, True, False]
+    assert "no information" in ident.why[2]
+    assert ident.se(2) is None
+    # the others' covariance is the inverse of their own block (c held fixed)
+    np.testing.assert_allclose(ident.cov[:2, :2], np.linalg.inv(H[:2, :2]))
+
+
+def test_parameters_that_trade_off_exactly_name_each_other():
+    J = np.array([[1.0, 2.0, 0.5], [2.0, 4.0, 0.1], [0.5, 1.0, 3.0], [1.0, 2.0, 1.0]])  # b = 2·a
+    ident = identify(J.T @ J, ["a", "b", "c"])
+    assert not ident.identifiable[0] and not ident.identifiable[1] and ident.identifiable[2]
+    assert "b" in ident.why[0] and "a" in ident.why[1]
+    assert ident.se(2) == pytest.approx(np.sqrt(1 / (J[:, 2] @ J[:, 2])))
+
+
+@pytest.fixture(scope="module")
+def dark_framed(tmp_path_factory):
+    """A small 14-bit dataset whose dark frames have no light (black level 256 DN in the readout, ISO gain)."""
+    design = Design(convention="test", shape=(64, 64), bit_depth=14, ages=(0, 1, 2), pedestal=0.0,
+                    black_level=256.0, read_noise=3.0, vignetting=0.6, stuck_fraction=0.1,
+                    iso_gain="uncompensated")
+    out = tmp_path_factory.mktemp("black") / "data"
+    make_hidden("none", out, rng=5, design=design)
+    return out
+
+
+def test_black_level_from_dark_frames_covers_the_truth(dark_framed):
+    ev, _ = prepare(dark_framed, ["gain"], 5, 19)
+    result = run_check(ev, [*base_model(ev.black_level), *resolve_effects(["gain"])])
+    p = next(p for p in result.params if p.label == "black_level.level")
+    assert p.identifiable and p.converged and p.se is not None
+    # 4 standard errors: the interval is the fit's own; a failure here is a bias, not bad luck (p < 1e-4)
+    assert abs(p.value - 256.0) < 4 * p.se + 1e-3, p
+    g = next(p for p in result.params if p.label == "gain.exponent")
+    assert abs(g.value - 1.0) < 4 * g.se + 1e-4, g
+
+
+def test_a_known_black_level_is_not_fitted(dark_framed):
+    ev, _ = prepare(dark_framed, ["gain"], 5, 19)
+    ev.black_level = 256.0
+    result = run_check(ev, [*base_model(ev.black_level), *resolve_effects(["gain"])])
+    assert not any(p.label == "black_level.level" for p in result.params)
+
+
+def test_black_level_from_the_manifest(tmp_path):
+    from forensics._shared.errors import InputError
+    from forensics.check.run import metadata_black_level
+    from forensics.io.dataset import write_manifest
+    from forensics.io.images import write_image
+
+    for name in ("a.png", "b.png"):
+        write_image(tmp_path / name, np.full((8, 8), 70, np.uint16))
+    write_manifest(tmp_path / "manifest.csv", [{"file": "a.png", "black_level": 64}, {"file": "b.png", "black_level": 64}])
+    assert metadata_black_level(tmp_path) == 64.0
+    write_manifest(tmp_path / "manifest.csv", [{"file": "a.png", "black_level": 64}, {"file": "b.png", "black_level": 60}],
+                   force=True)
+    with pytest.raises(InputError, match="black_level"):
+        metadata_black_level(tmp_path)
