@@ -42,6 +42,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 PIXEL_EFFECTS = ("prnu", "dark_current", "gain", "nonlinearity", "dsnu")
 
 
+def median_of(values: list) -> float:
+    """Median of the values reported (a fit that did not converge reports None: left out; NaN if none)."""
+    import numpy as np
+
+    kept = [v for v in values if v is not None]
+    return float(np.median(kept)) if kept else float("nan")
+
+
 def known_effects(design, effect: str) -> list[str]:
     """Effects a convention puts in every device, which the user knows of and names (``--add``): the ISO
     amplifier of a convention with an analogue gain (unless the gain is the hidden effect itself)."""
@@ -79,11 +87,12 @@ def run_one(job: tuple[str, int] | tuple[str, int, str]) -> dict:
                 "add_flagged": added.flagged, "add_error": added.error, "add_gof": added.gof})
     detect = out["hidden_flagged"] and rank == 1
     gofs = [v for v in added.gof.values() if v is not None]
-    fixed = not added.flagged and all(v >= 0.001 for v in gofs)
+    converged = added.error["pixel"] is not None  # a fit that did not converge reports no error: not fixed
+    fixed = converged and not added.flagged and all(v >= 0.001 for v in gofs)
     specific = True
     if effect in PIXEL_EFFECTS:
         before, after = base.error["pixel"], added.error["pixel"]
-        specific = after <= 1.1 and before >= 1.5 * after
+        specific = after is not None and before is not None and after <= 1.1 and before >= 1.5 * after
     elif effect == "shot_noise":
         specific = added.error["variance"] is not None and added.error["variance"] <= 0.05
     elif effect == "accelerating_growth":
@@ -192,12 +201,12 @@ def print_tables(runs: list[dict], effects: list[str]) -> None:
         else:
             crit, key = "gof.spatial ≥ 0.05", "spatial"
         if key == "spatial":
-            before = np.median([r["base_gof"]["spatial"] for r in rs])
-            after = np.median([r["add_gof"]["spatial"] for r in rs])
+            before = median_of([r["base_gof"]["spatial"] for r in rs])
+            after = median_of([r["add_gof"]["spatial"] for r in rs])
             b, a = f"gof.spatial {before:.3g}", f"gof.spatial {after:.3g}"
         else:
-            before = np.median([r["base_error"][key] for r in rs])
-            after = np.median([r["add_error"][key] for r in rs])
+            before = median_of([r["base_error"][key] for r in rs])
+            after = median_of([r["add_error"][key] for r in rs])
             b, a = f"{key} {before:.3g}", f"{key} {after:.3g}"
         dbic = np.median([r["hidden_dbic"] for r in rs])
         print(f"| {e} | {sum(r['detect'] for r in rs)}/{n} | {sum(r['fixed'] for r in rs)}/{n} | "
