@@ -1,6 +1,8 @@
 """The scene under each pixel, estimated from its neighbours (a leave-one-out local quadratic fit)."""
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import ndimage
 
@@ -13,19 +15,14 @@ def loo_quadratic_kernel(size: int = SCENE_SIZE) -> np.ndarray:
     """Weights of a least-squares quadratic surface fitted to a ``size × size`` window *without* its centre,
     evaluated at the centre: exact for any quadratic scene, independent of the centre pixel's noise."""
     h = size // 2
-    yy, xx = np.mgrid[-h:h + 1, -h:h + 1].astype(float)
-    keep = ~((yy == 0) & (xx == 0))
-    x, y = xx[keep], yy[keep]
-    design = np.column_stack([np.ones_like(x), x, y, x * x, y * y, x * y])
-    weights = np.linalg.solve(design.T @ design, design.T)[0]
-    kernel = np.zeros((size, size))
-    kernel[keep] = weights
-    return kernel
+    return clipped_kernel(size, h, h, h, h).copy()
 
 
+@functools.lru_cache(maxsize=256)
 def clipped_kernel(size: int, top: int, bottom: int, left: int, right: int) -> np.ndarray:
     """:func:`loo_quadratic_kernel` for a window cut by the image's edge: ``top`` … ``right`` are the rows and
-    columns available on each side of the centre (at most ``size // 2``); weights of missing places are 0."""
+    columns available on each side of the centre (at most ``size // 2``); weights of missing places are 0.
+    Cached (read-only): the same few edge windows recur in every pass over every image."""
     h = size // 2
     yy, xx = np.mgrid[-h:h + 1, -h:h + 1].astype(float)
     keep = ~((yy == 0) & (xx == 0)) & (yy >= -top) & (yy <= bottom) & (xx >= -left) & (xx <= right)
@@ -34,6 +31,7 @@ def clipped_kernel(size: int, top: int, bottom: int, left: int, right: int) -> n
     weights = np.linalg.lstsq(design, np.eye(len(x)), rcond=None)[0][0]
     kernel = np.zeros((size, size))
     kernel[keep] = weights
+    kernel.flags.writeable = False
     return kernel
 
 

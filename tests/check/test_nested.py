@@ -36,9 +36,12 @@ def test_adding_an_effect_never_makes_the_error_worse(tmp_path_factory, hidden, 
     before = run_check(ev, base_model())
     after = run_check(ev, [*base_model(), make_effect(added)])
     assert after.error["pixel"] is not None, after.warnings  # the fit converged
-    # held-out error² = mean z² over n pixel means: its sampling noise is √(2/n) relative; each extra
-    # per-pixel parameter fitted on one half costs at most 1/(conditions per pixel) on the other half
-    n = sum(1 for c in after.checks if c.statistic.startswith("pixel: held-out error²"))
-    conditions = len(ev.rep)
-    worst = before.error["pixel"] ** 2 * (1 + 4 * math.sqrt(2 / 2000)) + 3.0 / conditions
-    assert n and after.error["pixel"] ** 2 <= worst, (hidden, added, before.error, after.error)
+    # held-out error² = mean z² over the n usable pixel means of a class: its sampling noise is √(2/n) relative
+    # (4 σ; n of the class that sets error.pixel after adding); each extra per-pixel parameter fitted on one
+    # half costs at most 1/(conditions per pixel) on the other half (3 such parameters at most)
+    worst_class = max((k for k, v in after.error["classes"].items() if v is not None),
+                      key=lambda k: after.error["classes"][k])
+    n = next(int(c.statistic.split(", ")[1].split()[0]) for c in after.checks
+             if c.statistic.startswith(f"pixel: held-out error² ({worst_class},"))
+    worst = before.error["pixel"] ** 2 * (1 + 4 * math.sqrt(2 / n)) + 3.0 / len(ev.rep)
+    assert after.error["pixel"] ** 2 <= worst, (hidden, added, n, before.error, after.error)
