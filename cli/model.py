@@ -42,6 +42,9 @@ def register(sub) -> None:
                        help="forward selection: add flagged candidates one at a time until nothing is flagged")
     check.add_argument("--max-steps", type=int, default=None, metavar="N",
                        help="with --auto: add at most N effects (default 5)")
+    check.add_argument("--region", default=None, metavar="TOP,LEFT,HEIGHT,WIDTH",
+                       help="check only this part of every frame (pixels; a single number N: the central N×N); "
+                            "default the whole frame, whatever its size; the warnings say which region was used")
     add_output_options(check)
     check.set_defaults(handler=run_check)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
@@ -95,7 +98,8 @@ def run_check(args: argparse.Namespace) -> int:
 
         raise UsageError("--max-steps needs --auto")
     info(args, f"forensics model check: reading {args.data} …")
-    result = check(args.data, add=args.add, rng=args.seed, progress=progress_for(args))
+    result = check(args.data, add=args.add, rng=args.seed, progress=progress_for(args),
+                   region=parse_region(args.region, args.data))
     if args.report:
         path = check_report(result, title=f"Model check: {args.data}").write(args.report, force=args.force)
         info(args, f"report: {path}")
@@ -109,12 +113,33 @@ def _run_auto(args: argparse.Namespace) -> int:
 
     info(args, f"forensics model check --auto: reading {args.data} …")
     sel = check_auto(args.data, add=args.add, rng=args.seed, max_steps=5 if args.max_steps is None else args.max_steps,
-                     progress=progress_for(args))
+                     progress=progress_for(args), region=parse_region(args.region, args.data))
     if args.report:
         path = selection_report(sel, title=f"Model check (--auto): {args.data}").write(args.report, force=args.force)
         info(args, f"report: {path}")
     emit(args, lambda: format_check(sel.result) + "\n\n" + format_ladder(sel), sel.to_dict)
     return 0
+
+
+def parse_region(spec: str | None, data: str) -> tuple[int, int, int, int] | None:
+    """``--region``: ``TOP,LEFT,HEIGHT,WIDTH`` or ``N`` (the central N×N of the dataset's frames); None: whole."""
+    from forensics._shared.errors import UsageError
+
+    if spec is None:
+        return None
+    try:
+        values = [int(v) for v in spec.split(",")]
+    except ValueError:
+        values = []
+    if len(values) == 1 and values[0] > 0:
+        from forensics.check.measurements import central_region
+        from forensics.io.dataset import open_dataset
+
+        return central_region(open_dataset(data).shape(), values[0])
+    if len(values) != 4 or min(values) < 0 or min(values[2:]) < 1:
+        raise UsageError(f"--region {spec!r}: give TOP,LEFT,HEIGHT,WIDTH in pixels (e.g. 0,0,1024,1024) or one "
+                         "size N for the central N×N")
+    return values[0], values[1], values[2], values[3]
 
 
 def format_ladder(sel: Any) -> str:
@@ -172,8 +197,9 @@ def format_check(result: Any) -> str:
         if not p.blocks:
             continue
         hyper = f" (sets {p.hyper} = {_g(p.hyper_value)})" if p.hyper and p.hyper_value is not None else ""
+        size = f"; size in the frames {_g(p.size)} ± {_g(p.size_se)}" if p.size is not None else ""
         lines.append(f"  {p.effect + '.' + p.name:<32} pattern over {p.blocks} blocks: rms {_g(p.rms)}, "
-                     f"max |value| {_g(p.maximum)}{hyper}")
+                     f"max |value| {_g(p.maximum)}{hyper}{size}")
     e = result.error
     before = result.baseline.error if result.baseline is not None else None
 

@@ -5,6 +5,18 @@ from __future__ import annotations
 import numpy as np
 
 
+def normal_matrix(X: list[np.ndarray], weight: np.ndarray | None = None) -> np.ndarray:
+    """Per pixel, the (weighted) Gram matrix Σ_r X_i·w·X_j of the columns ``X`` (each ``(R, H, W)``):
+    ``(H, W, k, k)``."""
+    k = len(X)
+    A = np.empty((*X[0].shape[1:], k, k))
+    for i in range(k):
+        xi = X[i] if weight is None else X[i] * weight
+        for j in range(i, k):
+            A[..., i, j] = A[..., j, i] = np.einsum("r...,r...->...", xi, X[j])
+    return A
+
+
 class PixelProjector:
     """Projection, pixel by pixel, off the span of per-pixel nuisance directions (weighted).
 
@@ -18,10 +30,7 @@ class PixelProjector:
         if k == 0:
             self.inv = None
             return
-        gram = np.empty((*columns[0].shape[1:], k, k))
-        for i in range(k):
-            for j in range(i, k):
-                gram[..., i, j] = gram[..., j, i] = np.einsum("r...,r...->...", columns[i], columns[j])
+        gram = normal_matrix(columns)
         diag = np.einsum("...ii->...i", gram)
         scale = np.where(diag > 0, diag, 1.0)
         norm = np.sqrt(scale[..., :, None] * scale[..., None, :])
@@ -56,13 +65,8 @@ def solve_local(weight: np.ndarray, X: list[np.ndarray], r: np.ndarray) -> tuple
     """Per-pixel weighted least squares of ``r`` on the columns ``X``: (coefficients (k,H,W), their variances)."""
     w = weight
     k = len(X)
-    shape = w.shape[1:]
-    A = np.empty((*shape, k, k))
-    b = np.empty((*shape, k))
-    for i in range(k):
-        b[..., i] = np.einsum("r...,r...->...", X[i] * w, r)
-        for j in range(i, k):
-            A[..., i, j] = A[..., j, i] = np.einsum("r...,r...->...", X[i] * w, X[j])
+    A = normal_matrix(X, w)
+    b = np.stack([np.einsum("r...,r...->...", X[i] * w, r) for i in range(k)], axis=-1)
     diag = np.einsum("...ii->...i", A).copy()
     dead = diag <= 1e-12 * (diag.max() if diag.size else 1.0)
     for i in range(k):
@@ -76,3 +80,30 @@ def solve_local(weight: np.ndarray, X: list[np.ndarray], r: np.ndarray) -> tuple
     var = np.einsum("...ii->...i", inv).copy()
     var[dead] = np.nan
     return np.moveaxis(coef, -1, 0), np.moveaxis(var, -1, 0)
+
+
+def shrink_local(weight: np.ndarray, X: list[np.ndarray], coef: np.ndarray, precision: np.ndarray) -> np.ndarray:
+    """Per pixel, least-squares coefficients ``coef`` (k, H, W) moved to the mixed-model solution in which
+    column j has a zero-mean prior of precision ``precision[j]`` (1/τ²; 0 for a fixed effect, ``inf`` to fix
+    it at 0): β = (A + P)⁻¹·A·β̂ with A the weighted normal matrix (Henderson's equations at the least-squares
+    point).
+
+    With one column this is the familiar shrinkage β̂·τ²/(τ² + s²); with several, fixed effects that are
+    collinear with a random one (a defect's offset and the per-pixel dark-rate pattern) take over what the
+    random one gives up instead of both being shrunk.  Columns without information at a pixel stay 0.
+    """
+    A = normal_matrix(X, weight)
+    k = len(X)
+    prec = np.asarray(precision, float)
+    adiag = np.einsum("...ii->...i", A)
+    dead = adiag <= 1e-12 * (adiag.max() if adiag.size else 1.0)
+    beta = np.moveaxis(coef, 0, -1)
+    rhs = np.einsum("...ij,...j->...i", A, beta)
+    M = A + np.diag(np.where(np.isfinite(prec), prec, 0.0))
+    for i in range(k):
+        # a dead column or one fixed at 0: the row becomes β_i = 0 (its column then multiplies 0)
+        zero = dead[..., i] | bool(np.isinf(prec[i]))
+        M[..., i, :] = np.where(zero[..., None], 0.0, M[..., i, :])
+        M[..., i, i] = np.where(zero, 1.0, M[..., i, i])
+        rhs[..., i] = np.where(zero, 0.0, rhs[..., i])
+    return np.moveaxis(np.linalg.solve(M, rhs[..., None])[..., 0], -1, 0)

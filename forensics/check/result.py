@@ -52,6 +52,9 @@ class PatternEstimate:
     maximum: float
     hyper: str | None = None
     hyper_value: float | None = None
+    #: pixel-local patterns: the size as the frames show it (split-half, free of the noise floor) and its SE
+    size: float | None = None
+    size_se: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

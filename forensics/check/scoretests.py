@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize, stats
 
+from forensics.check.streams import PATTERN_SIZE_STREAM
 from forensics.check.classes import NORMAL, STK
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
@@ -26,8 +27,6 @@ from forensics.check.signatures import Signature
 #: Side of the square tiles over which the split-half statistic's variance is measured: much larger than the
 #: correlation length of demosaiced, JPEG-compressed noise (a few pixels), small enough for ~1000 tiles at 512².
 TILE = 16
-#: Key of the random stream of that bootstrap (:meth:`forensics.check.streams.Streams.stream`; 1 and 7 are taken).
-PATTERN_SIZE_STREAM = 11
 
 
 def random_effect_lr(zb: np.ndarray, ab: np.ndarray) -> tuple[float, float]:

@@ -18,6 +18,8 @@ from forensics._shared.rng import RngLike, keyed_generator
 #: Stream keys.
 NULL_SIMULATIONS = 1
 ARRIVAL_SIGNATURES = 7
+#: bootstrap of a pixel-local pattern's size (forensics.check.pixels.pattern_size)
+PATTERN_SIZE_STREAM = 11
 
 
 @dataclass(frozen=True)

@@ -136,7 +136,9 @@ def _numbers(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult
               [[p.effect, p.name, p.value if p.identifiable and p.converged else p.summary(),
                 "—" if p.se is None else p.se, p.unit] for p in result.params]
               + [[p.effect, f"{p.name} (pattern, {p.blocks} blocks)", p.rms, "rms", p.hyper or ""]
-                 for p in result.patterns])
+                 for p in result.patterns]
+              + [[p.effect, f"{p.name} (size in the frames, split halves)", p.size, p.size_se, ""]
+                 for p in result.patterns if p.size is not None])
     rep.heading("Candidates")
     for name, r in runs:
         rep.table(["rank", "effect", "predicted ΔBIC", "p (Holm)", "flagged", "evidence"],

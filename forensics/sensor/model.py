@@ -337,6 +337,12 @@ class Pattern:
     summary: str = "rms"
 
     @property
+    def random_effect(self) -> bool:
+        """True when the values are draws of a zero-mean distribution whose spread is ``hyper`` (summary
+        ``"rms"``, e.g. PRNU's ``sigma_k``), rather than one free value per defect or block."""
+        return self.hyper is not None and self.summary == "rms"
+
+    @property
     def pixel_local(self) -> bool:
         """True when every block is a single pixel (then the checker solves pixel by pixel)."""
         used = self.blocks[self.blocks >= 0]
