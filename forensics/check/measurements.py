@@ -24,7 +24,7 @@ from forensics._shared.arrays import grey_mean, infer_full_scale
 from forensics._shared.errors import InputError
 from forensics._shared.progress import Progress, no_progress
 from forensics.check.scene import KERNEL, SCENE_SIZE, scene_estimate
-from forensics.io.dataset import Dataset, open_dataset, split_epochs
+from forensics.io.dataset import LIGHT_COLUMN, Dataset, open_dataset, split_epochs
 from forensics.io.stack import StackAccumulator
 
 
@@ -40,6 +40,7 @@ class Group:
     temperature_c: float | None
     subject: str | None
     frames: list[int]
+    light: str | None = None  #: the manifest's ``light`` column (a light level), when it has one
 
     @property
     def n(self) -> int:
@@ -47,7 +48,7 @@ class Group:
 
     @property
     def condition(self) -> tuple[Any, ...]:
-        return (self.exposure_s, self.iso, self.temperature_c, self.subject)
+        return (self.exposure_s, self.iso, self.temperature_c, self.subject, self.light)
 
     def label(self) -> str:
         parts = [f"epoch {self.epoch}"]
@@ -59,6 +60,8 @@ class Group:
             parts.append(f"ISO {self.iso:g}")
         if self.temperature_c is not None:
             parts.append(f"{self.temperature_c:g} °C")
+        if self.light is not None:
+            parts.append(f"light {self.light}")
         return ", ".join(parts)
 
 
@@ -145,9 +148,25 @@ class Measurements:
         return sorted({getattr(g, attr) for g in self.groups if getattr(g, attr) is not None})
 
 
-def _central_crop(h: int, w: int, max_size: int) -> tuple[slice, slice]:
-    top, left = max(0, (h - max_size) // 2), max(0, (w - max_size) // 2)
-    return slice(top, top + min(h, max_size)), slice(left, left + min(w, max_size))
+#: An explicit region of the frames: (top, left, height, width) in pixels.
+Region = tuple[int, int, int, int]
+
+
+def central_region(shape: Sequence[int], size: int) -> Region:
+    """The central ``size × size`` region of frames of ``shape`` (the whole frame along a side shorter than
+    ``size``), for :func:`load_measurements`'s ``region``."""
+    h, w = int(shape[0]), int(shape[1])
+    return max(0, (h - size) // 2), max(0, (w - size) // 2), min(h, size), min(w, size)
+
+
+def _region_slices(h: int, w: int, region: Region | None) -> tuple[slice, slice]:
+    if region is None:
+        return slice(0, h), slice(0, w)
+    top, left, height, width = (int(v) for v in region)
+    if top < 0 or left < 0 or height < 1 or width < 1 or top + height > h or left + width > w:
+        raise InputError(f"region (top {top}, left {left}, height {height}, width {width}) is not inside the "
+                         f"{w}×{h} frames; give top, left ≥ 0 and top + height ≤ {h}, left + width ≤ {w}")
+    return slice(top, top + height), slice(left, left + width)
 
 
 def frame_residual(grey: np.ndarray) -> np.ndarray:
@@ -196,16 +215,18 @@ class Lag1:
 
 
 def group_frames(ds: Dataset, epoch: np.ndarray, epoch_times: np.ndarray) -> list[Group]:
-    """Frames grouped by (epoch, exposure, ISO, temperature, subject), in order of epoch and first frame."""
+    """Frames grouped by (epoch, exposure, ISO, temperature, subject, light), in order of epoch and first frame
+    (``light``: the manifest's optional column of that name, e.g. the irradiance of a photon-transfer series)."""
     keys: dict[tuple[Any, ...], list[int]] = {}
     for i, f in enumerate(ds.frames):
-        keys.setdefault((int(epoch[i]), f.exposure_s, f.iso, f.temperature_c, f.subject), []).append(i)
-    return [Group(j, k[0], float(epoch_times[k[0]]), k[1], k[2], k[3], k[4], idx)
+        light = f.extra.get(LIGHT_COLUMN) or None
+        keys.setdefault((int(epoch[i]), f.exposure_s, f.iso, f.temperature_c, f.subject, light), []).append(i)
+    return [Group(j, k[0], float(epoch_times[k[0]]), k[1], k[2], k[3], k[4], idx, k[5])
             for j, (k, idx) in enumerate(sorted(keys.items(), key=lambda kv: (kv[0][0], kv[1][0])))]
 
 
 def load_measurements(data: Dataset | str | Path, border: int | None = None, epoch_gap: float = 0.25,
-                      max_size: int = 512, progress: Progress = no_progress) -> Measurements:
+                      region: Region | None = None, progress: Progress = no_progress) -> Measurements:
     """Read every frame once and reduce the dataset to per-condition statistics.
 
     Parameters
@@ -216,8 +237,10 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
         Pixels ignored at each edge (default: half the scene window, 3).
     epoch_gap
         Capture-time gap (years) that starts a new epoch.
-    max_size
-        Larger frames are cropped to their central ``max_size × max_size`` pixels.
+    region
+        ``(top, left, height, width)``: analyse only this part of every frame (said in the notes); default the
+        whole frame, whatever its size (frames are read one at a time, so memory is a few per-condition
+        arrays of the frame's size).  :func:`central_region` gives a centred one.
 
     Raises
     ------
@@ -228,9 +251,11 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     shape = ds.shape()
     notes = []
     h, w = shape[0], shape[1]
-    crop = _central_crop(h, w, max_size)
-    if h > max_size or w > max_size:
-        notes.append(f"frames of {w}×{h} cropped to their central {min(w, max_size)}×{min(h, max_size)} pixels")
+    crop = _region_slices(h, w, region)
+    if region is not None:
+        rh, rw = crop[0].stop - crop[0].start, crop[1].stop - crop[1].start
+        notes.append(f"only a region of the {w}×{h} frames analysed, as asked: {rw}×{rh} pixels at rows "
+                     f"{crop[0].start}–{crop[0].stop - 1}, columns {crop[1].start}–{crop[1].stop - 1}")
     if len(shape) == 3:
         notes.append("colour frames averaged to grey")
     try:
@@ -245,7 +270,7 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     repeated = [g.index for g in groups if g.n >= 2]
     if not repeated:
         raise InputError(f"{ds.root}: no condition has two or more frames; the noise floor is measured from repeated "
-                         "frames of one condition (same exposure_s, iso, temperature_c, subject and epoch): "
+                         "frames of one condition (same exposure_s, iso, temperature_c, subject, light and epoch): "
                          "take at least 2 frames per condition")
     shp = (crop[0].stop - crop[0].start, crop[1].stop - crop[1].start)
     G, R = len(groups), len(repeated)
@@ -266,8 +291,9 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
             img = ds.frames[i].load()
             dtype = img.dtype if dtype is None else dtype
             grey = grey_mean(img[crop], np.float64)
-            whole.add(grey, name=ds.frames[i].file)
-            halves[j % 2].add(grey, name=ds.frames[i].file)
+            stacked = _stackable(img[crop], grey, whole)
+            whole.add(stacked, name=ds.frames[i].file)
+            halves[j % 2].add(stacked, name=ds.frames[i].file)
             if g.index in rpos:
                 resid.add(frame_residual(grey), name=ds.frames[i].file)
                 frame_blocks.append(block_means(grey))
@@ -290,8 +316,25 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
                         repeated, mean_a, mean_b, n_a, n_b, len(ds), notes=notes, var_resid=var_resid)
     jpeg = any(Path(f.file).suffix.lower() in JPEG_SUFFIXES for f in ds.frames)
     meas.traits = NoiseTraits(lag.result(), blocks, jpeg)
-    meas.scene_all = np.stack([scene_estimate(m) for m in mean_all])
+    meas.scene_all = np.empty_like(mean_all)
+    for g, m in enumerate(mean_all):
+        meas.scene_all[g] = scene_estimate(m)
     return meas
+
+
+def _stackable(frame: np.ndarray, grey: np.ndarray, acc: StackAccumulator) -> np.ndarray:
+    """What a condition's stack accumulates of a frame: a grey 8- or 16-bit frame as it is (the accumulator's
+    exact integer sums: 20 bytes a pixel instead of 48, the same statistics), anything else as ``grey``
+    (float64).  A frame of another integer type than the condition's first one is converted to that type when
+    no value changes (else the accumulator reports the mixture)."""
+    if frame.ndim != 2 or frame.dtype not in (np.uint8, np.uint16):
+        return grey
+    first = acc._dtype  # None before the condition's first frame
+    if first is None or frame.dtype == first:
+        return frame
+    if first in (np.uint8, np.uint16) and np.can_cast(frame.dtype, first, "safe"):
+        return frame.astype(first)
+    return grey if first == np.float64 else frame
 
 
 @dataclass(frozen=True)

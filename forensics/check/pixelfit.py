@@ -26,10 +26,19 @@ class PixelFit:
     local_var: np.ndarray | None  #: variances of their fitted values
 
 
+def used_blocks(pat: Pattern) -> np.ndarray:
+    """The sorted distinct block indices of a pattern that some pixel uses (``np.unique`` of the non-negative
+    ``blocks``, by a mask over the blocks: linear in the pixels, no sort)."""
+    blocks = pat.blocks[pat.blocks >= 0]
+    seen = np.zeros(max(len(pat.values), int(blocks.max()) + 1 if blocks.size else 0), bool)
+    seen[blocks] = True
+    return np.flatnonzero(seen)
+
+
 def pattern_derivative(predict, device: Device, pat: Pattern, base: np.ndarray) -> np.ndarray:
     """∂μ/∂value of each pixel's own block, all blocks perturbed at once (zero outside the blocks: a block's
     influence on other pixels, e.g. through their scene estimate, is not a parameter of theirs)."""
-    used = np.unique(pat.blocks[pat.blocks >= 0])
+    used = used_blocks(pat)
     if used.size == 0:
         return np.zeros_like(base)
     delta = 1e-3 * (1.0 + float(np.max(np.abs(pat.values[used]))))

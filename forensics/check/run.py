@@ -19,7 +19,7 @@ from forensics.check.diagnosis import diagnose
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel, fit_model
 from forensics.check.gof import class_errors, covariate_checks, growth_gof, pixel_gof, spatial_gof, variance_gof
-from forensics.check.measurements import Measurements, load_measurements
+from forensics.check.measurements import Measurements, Region, load_measurements
 from forensics.check.result import CheckResult, CheckRow, PlotData
 from forensics.check.pixels import uses_scene
 from forensics.check.scene import KERNEL_VAR
@@ -154,20 +154,27 @@ def _data_summary(ev: Evidence, fitted: FittedModel) -> dict[str, Any]:
 
 
 def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect], rng: RngLike, n_sim: int,
-            progress: Progress = no_progress) -> tuple[Evidence, list[Effect]]:
-    """The evidence of a dataset and the effects to add to the base model (refusing one already in it)."""
+            progress: Progress = no_progress, region: Region | None = None) -> tuple[Evidence, list[Effect]]:
+    """The evidence of a dataset and the effects to add to the base model (refusing one already in it);
+    ``region`` as in :func:`~forensics.check.measurements.load_measurements` (whole frames by default)."""
     extra = resolve_effects(add)
     names = [e.key for e in base_model()]
     for e in extra:
         if e.key in names:
             raise UsageError(f"the effect '{e.key}' is already in the model")
         names.append(e.key)
-    meas = data if isinstance(data, Measurements) else load_measurements(data, progress=progress)
+    if isinstance(data, Measurements):
+        if region is not None:
+            raise UsageError("a region is chosen when the frames are read (load_measurements), not afterwards")
+        meas = data
+    else:
+        meas = load_measurements(data, region=region, progress=progress)
     return Evidence(meas, rng=rng, n_sim=n_sim, black_level=metadata_black_level(meas.root)), extra
 
 
 def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
-          baseline: bool = True, n_sim: int = 199, progress: Progress = no_progress) -> CheckResult:
+          baseline: bool = True, n_sim: int = 199, progress: Progress = no_progress,
+          region: Region | None = None) -> CheckResult:
     """Fit the base model plus ``add`` to a dataset, score it and diagnose what is missing.
 
     Parameters
@@ -185,12 +192,15 @@ def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect]
         (for before/after comparisons).
     n_sim
         Monte-Carlo simulations of the fitted arrival model.
+    region
+        ``(top, left, height, width)``: check only this part of every frame (the warnings say so); default the
+        whole frame (:func:`~forensics.check.measurements.load_measurements`).
 
     Returns
     -------
     CheckResult
     """
-    ev, extra = prepare(data, add, rng, n_sim, progress)
+    ev, extra = prepare(data, add, rng, n_sim, progress, region)
     result = run_check(ev, [*base_model(ev.black_level), *extra])
     if extra and baseline:
         result.baseline = run_check(ev, base_model(ev.black_level))

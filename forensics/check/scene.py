@@ -35,45 +35,62 @@ def clipped_kernel(size: int, top: int, bottom: int, left: int, right: int) -> n
     return kernel
 
 
+@functools.lru_cache(maxsize=8)
+def _edge_band(shape: tuple[int, int], kernel_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels within ``kernel_size // 2`` of the edge of an image of ``shape`` (rows, columns),
+    their window's flat offsets ``(size², N)`` (clipped into the image; a place outside has weight 0) and their
+    clipped kernels' weights ``(size², N)``.  Cached (read-only): every pass over every image of one shape
+    shares them."""
+    h = kernel_size // 2
+    H, W = shape
+    rows, cols = np.r_[0:h, H - h:H], np.r_[0:h, W - h:W]  # the band: whole edge rows, edge columns between
+    middle = np.arange(h, H - h)
+    ys = np.concatenate([np.repeat(rows, W), np.repeat(middle, cols.size)])
+    xs = np.concatenate([np.tile(np.arange(W), rows.size), np.tile(cols, middle.size)])
+    top, bottom = np.minimum(ys, h), np.minimum(H - 1 - ys, h)
+    left, right = np.minimum(xs, h), np.minimum(W - 1 - xs, h)
+    weights = np.empty((kernel_size * kernel_size, ys.size))
+    index = np.empty((kernel_size * kernel_size, ys.size), np.intp)
+    kernels = {}
+    for key in set(zip(top.tolist(), bottom.tolist(), left.tolist(), right.tolist())):
+        kernels[key] = clipped_kernel(kernel_size, *key).ravel()
+    code = ((top * (h + 1) + bottom) * (h + 1) + left) * (h + 1) + right
+    for key, k in kernels.items():
+        t, b, l, r = key
+        sel = code == ((t * (h + 1) + b) * (h + 1) + l) * (h + 1) + r
+        weights[:, sel] = k[:, None]
+    j = 0
+    for dy in range(-h, h + 1):
+        for dx in range(-h, h + 1):
+            index[j] = np.clip(ys + dy, 0, H - 1) * W + np.clip(xs + dx, 0, W - 1)
+            j += 1
+    for a in (ys, xs, index, weights):
+        a.flags.writeable = False
+    return ys, xs, index, weights
+
+
 def edge_estimates(image: np.ndarray, estimate: np.ndarray, kernel_size: int = SCENE_SIZE) -> None:
     """Replace, in ``estimate``, the values within ``kernel_size // 2`` of the image's edge by the leave-one-out
     quadratic fitted to the part of the window inside the image.
 
     A reflected border would put a kink into any gradient (vignetting is steepest there): the edge pixels'
     estimates would be off by about the gradient, the pixels taken for outliers, and their fill values would
-    spoil the interior estimates next to them."""
+    spoil the interior estimates next to them.
+
+    Every edge pixel at once (:func:`_edge_band`): the window's places are summed in row-major order, as a
+    per-pixel loop over the clipped kernel would (a place outside the image has weight 0 and adds 0)."""
     h = kernel_size // 2
     H, W = image.shape
     if H <= 2 * h + 1 or W <= 2 * h + 1:
         return
-    padded = np.pad(image, h)
-    rows = [(y, min(y, h), min(H - 1 - y, h)) for y in range(H)]
-    cols = [(x, min(x, h), min(W - 1 - x, h)) for x in range(W)]
-    edge_rows = [r for r in rows if r[1] < h or r[2] < h]
-    edge_cols = [c for c in cols if c[1] < h or c[2] < h]
-    inner_rows = slice(h, H - h)
-    inner_cols = slice(h, W - h)
-
-    def apply(ys: slice | int, xs: slice | int, top: int, bottom: int, left: int, right: int) -> None:
-        k = clipped_kernel(kernel_size, top, bottom, left, right)
-        ylo = ys.start if isinstance(ys, slice) else ys
-        yhi = ys.stop if isinstance(ys, slice) else ys + 1
-        xlo = xs.start if isinstance(xs, slice) else xs
-        xhi = xs.stop if isinstance(xs, slice) else xs + 1
-        acc = np.zeros((yhi - ylo, xhi - xlo))
-        for dy in range(-h, h + 1):
-            for dx in range(-h, h + 1):
-                wt = k[dy + h, dx + h]
-                if wt:
-                    acc += wt * padded[ylo + h + dy:yhi + h + dy, xlo + h + dx:xhi + h + dx]
-        estimate[ylo:yhi, xlo:xhi] = acc
-
-    for y, top, bottom in edge_rows:  # edge rows: inner columns share one kernel per row, corners per pixel
-        apply(y, inner_cols, top, bottom, h, h)
-        for x, left, right in edge_cols:
-            apply(y, x, top, bottom, left, right)
-    for x, left, right in edge_cols:
-        apply(inner_rows, x, h, h, left, right)
+    ys, xs, index, weights = _edge_band((H, W), kernel_size)
+    values = np.asarray(image, np.float64).ravel()
+    centre = (kernel_size * kernel_size) // 2
+    acc = np.zeros(ys.size)
+    for j in range(kernel_size * kernel_size):
+        if j != centre:  # the centre's weight is 0 in every leave-one-out kernel
+            acc += weights[j] * values[index[j]]
+    estimate[ys, xs] = acc
 
 
 KERNEL = loo_quadratic_kernel()
@@ -87,34 +104,50 @@ def plane_fill(image: np.ndarray, good: np.ndarray, size: int = 5, wide: int = 1
     window has fewer than 3 good pixels.
 
     A plane is exact for any gradient, also at an edge or next to other gaps, where a box mean is off by
-    about the gradient (vignetting is steepest at the edges) and would spoil the neighbours' estimates."""
-    h, w = image.shape
+    about the gradient (vignetting is steepest at the edges) and would spoil the neighbours' estimates.
+
+    Only the windows of the pixels to fill are visited (their moments summed offset by offset, in coordinates
+    relative to the pixel), so the cost grows with the number of pixels filled, not with the image."""
     out = np.array(image, np.float64, copy=True)
-    todo = np.flatnonzero(~good)
-    g = good.astype(np.float64)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    yy -= h / 2
-    xx -= w / 2
-    img = np.where(good, image, 0.0)
+    good = np.asarray(good, bool)
+    ty, tx = np.nonzero(~good)
     for n in (size, wide):
-        if not todo.size:
+        if not ty.size:
             break
-
-        def box(v: np.ndarray) -> np.ndarray:
-            return ndimage.uniform_filter(v, size=n, mode="constant").ravel()[todo]
-
-        s1, sx, sy = box(g), box(g * xx), box(g * yy)
-        sxx, syy, sxy = box(g * xx * xx), box(g * yy * yy), box(g * xx * yy)
+        m = _window_moments(out, good, ty, tx, n)
+        s1, sx, sy, sxx, syy, sxy, b0, bx, by = m / float(n * n)  # box means, as a uniform filter gives them
         A = np.stack([np.stack([s1, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)], -2)
-        b = np.stack([box(img), box(img * xx), box(img * yy)], -1)
+        b = np.stack([b0, bx, by], -1)
         ok = (s1 * n * n >= 2.5) & (np.abs(np.linalg.det(A)) > 1e-12 * np.maximum(s1, 1e-300) ** 3)
         coef = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
-        at = todo[ok]
-        out.ravel()[at] = coef[:, 0] + coef[:, 1] * xx.ravel()[at] + coef[:, 2] * yy.ravel()[at]
-        todo = todo[~ok]
-    if todo.size:
-        out.ravel()[todo] = float(np.mean(image[good])) if good.any() else 0.0
+        out[ty[ok], tx[ok]] = coef[:, 0]  # the plane at the pixel itself (the origin of its coordinates)
+        ty, tx = ty[~ok], tx[~ok]
+    if ty.size:
+        out[ty, tx] = float(np.mean(image[good])) if good.any() else 0.0
     return out
+
+
+def _window_moments(image: np.ndarray, good: np.ndarray, ty: np.ndarray, tx: np.ndarray, n: int,
+                    chunk: int = 16384) -> np.ndarray:
+    """Per pixel (ty, tx), sums over the good pixels of its ``n × n`` window inside the image of 1, x, y, x², y²,
+    xy, v, v·x, v·y (x, y relative to the pixel, v the image value): ``(9, len(ty))``."""
+    h, w = image.shape
+    r = n // 2
+    dy, dx = (a.ravel() for a in np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64))
+    powers = np.stack([np.ones_like(dx), dx, dy, dx * dx, dy * dy, dx * dy], -1)  # (n², 6)
+    oy, ox = dy.astype(np.intp), dx.astype(np.intp)
+    m = np.empty((9, ty.size))
+    for lo in range(0, ty.size, chunk):
+        yy = ty[lo:lo + chunk, None] + oy
+        xx = tx[lo:lo + chunk, None] + ox
+        use = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+        np.clip(yy, 0, h - 1, out=yy)
+        np.clip(xx, 0, w - 1, out=xx)
+        use &= good[yy, xx]
+        v = np.where(use, image[yy, xx], 0.0)
+        m[:6, lo:lo + chunk] = (use.astype(np.float64) @ powers).T
+        m[6:, lo:lo + chunk] = (v @ powers[:, :3]).T
+    return m
 
 
 def scene_estimate_and_fill(image: np.ndarray, exclude: np.ndarray | None = None, kernel: np.ndarray = KERNEL,

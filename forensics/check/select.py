@@ -23,7 +23,7 @@ from forensics._shared.errors import ForensicsError, UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.evidence import Evidence
-from forensics.check.measurements import Measurements
+from forensics.check.measurements import Measurements, Region
 from forensics.check.result import CheckResult
 from forensics.check.run import base_model, prepare, resolve_effects, run_check
 from forensics.io.dataset import Dataset
@@ -218,7 +218,8 @@ def _done(steps: list[Step], refused: list[Attempt], reason: str, stopped: str) 
 
 
 def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
-               max_steps: int = 5, n_sim: int = 199, progress: Progress = no_progress) -> SelectionResult:
+               max_steps: int = 5, n_sim: int = 199, progress: Progress = no_progress,
+               region: Region | None = None) -> SelectionResult:
     """Forward selection on a dataset: the base model plus ``add``, then flagged candidates one at a time.
 
     Parameters
@@ -236,10 +237,12 @@ def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Ef
         Monte-Carlo simulations of the fitted arrival model.
     progress
         Progress callable for reading the frames.
+    region
+        ``(top, left, height, width)``: check only this part of every frame (default the whole frame).
 
     Returns
     -------
     SelectionResult
     """
-    ev, extra = prepare(data, add, rng, n_sim, progress)
+    ev, extra = prepare(data, add, rng, n_sim, progress, region)
     return forward_select(ev, [*base_model(ev.black_level), *extra], max_steps=max_steps)

@@ -16,6 +16,7 @@ import numpy as np
 from forensics.check.evidence import EffectQuestions, Evidence
 from forensics.check.fit import FittedModel
 from forensics.check.params import on_device
+from forensics.check.pixelfit import used_blocks
 from forensics.check.prediction import predicted_variance
 from forensics.check.streams import ARRIVAL_SIGNATURES
 from forensics.sensor.model import Device, Effect, Stage
@@ -73,7 +74,7 @@ class SignatureContext(EffectQuestions):
         base = self._predict(dev)
         sigs = []
         for pat in probe.patterns(dev):
-            used = np.unique(pat.blocks[pat.blocks >= 0])
+            used = used_blocks(pat)
             if used.size == 0:
                 continue
             delta = 1e-2

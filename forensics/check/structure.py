@@ -38,8 +38,10 @@ shape.  Defective pixels (stuck, partially stuck) are left out; their channels a
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import warnings
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
 
@@ -89,6 +91,7 @@ def _pair_sums(left: np.ndarray, right: np.ndarray, kernel: np.ndarray, n_left: 
     h, w = left.shape
     c = kernel.shape[0] // 2
     out = np.zeros(n_left * n_right)
+    square = out.reshape(n_left, n_right)
     for dy in range(-c, c + 1):
         for dx in range(-c, c + 1):
             wt = kernel[dy + c, dx + c]
@@ -97,8 +100,52 @@ def _pair_sums(left: np.ndarray, right: np.ndarray, kernel: np.ndarray, n_left: 
             a = left[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)]
             b = right[max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)]
             ok = (a >= 0) & (b >= 0)
-            out += wt * np.bincount(a[ok] * n_right + b[ok], minlength=n_left * n_right)
-    return out.reshape(n_left, n_right)
+            a, b = a[ok], b[ok]
+            if not a.size:
+                continue
+            # neighbouring pixels' labels differ by little (column, row, radius): count (label, difference)
+            # pairs, a band instead of the whole square (the same counts, added in the same order)
+            diff = b - a
+            lo = int(diff.min())
+            span = int(diff.max()) - lo + 1
+            if span < n_right:
+                band = np.bincount(a * span + (diff - lo), minlength=n_left * span).reshape(n_left, span)
+                j, d = np.nonzero(band)
+                square[j, j + d + lo] += wt * band[j, d]
+            else:
+                out += wt * np.bincount(a * n_right + b, minlength=n_left * n_right)
+    return square
+
+
+#: The last few bin geometries (bin covariance, white gain, eigen-decomposition), keyed by the labels' digest:
+#: they depend on the pixels used only, which are the same for every model fitted to one dataset unless the outliers change.
+_GEOMETRY: OrderedDict[bytes, tuple[np.ndarray, ...]] = OrderedDict()
+_GEOMETRY_SIZE = 3
+
+
+def _geometry(labels: np.ndarray, pattern_labels: np.ndarray, n_bins: int) -> tuple[np.ndarray, ...]:
+    """(:func:`bin_covariance`, :func:`white_gain`, eigenvalues and eigenvectors of the bin covariance over the
+    bins that hold pixels) of the labels, from a small cache (read-only arrays).  The eigen-decomposition, cubic
+    in the number of bins, is most of a profile test's time on large frames; the noise variance only scales the
+    eigenvalues."""
+    digest = hashlib.blake2b(digest_size=20)
+    for a in (labels, pattern_labels):
+        digest.update(repr((a.shape, a.dtype.str)).encode())
+        digest.update(np.ascontiguousarray(a).data)
+    key = digest.digest() + n_bins.to_bytes(8, "little")
+    if key in _GEOMETRY:
+        _GEOMETRY.move_to_end(key)
+        return _GEOMETRY[key]
+    geo = bin_covariance(labels, n_bins)
+    have = np.bincount(labels[labels >= 0], minlength=n_bins) > 0
+    evals, evecs = np.linalg.eigh(geo[np.ix_(have, have)])
+    out = (geo, white_gain(labels, pattern_labels, n_bins), evals, evecs)
+    for a in out:
+        a.flags.writeable = False
+    _GEOMETRY[key] = out
+    while len(_GEOMETRY) > _GEOMETRY_SIZE:
+        _GEOMETRY.popitem(last=False)
+    return out
 
 
 def bin_covariance(labels: np.ndarray, n_bins: int) -> np.ndarray:
@@ -143,14 +190,13 @@ def profile_test(kind: str, zsum: np.ndarray, rbar: np.ndarray, labels: np.ndarr
     nb = int(labels.max()) + 1
     use = labels >= 0
     n = np.bincount(labels[use], minlength=nb).astype(float)
-    geo = bin_covariance(labels, nb)
+    geo, gains, geo_evals, evecs = _geometry(labels, pattern_labels, nb)
     ac0 = float(A2[A2.shape[0] // 2, A2.shape[1] // 2])  # 1 + Σw²
     s2 = float(np.mean(zsum[use] ** 2)) / ac0
     s2_dn = float(np.mean(rbar[use] ** 2)) / ac0
     sums = np.bincount(labels[use], weights=zsum[use], minlength=nb)
     have = n > 0
-    cov = s2 * geo[np.ix_(have, have)]
-    evals, evecs = np.linalg.eigh(cov)
+    evals = s2 * geo_evals  # of the bins' covariance s2 · geo (geo's eigenvectors)
     keep = evals > EIG_FLOOR * max(float(evals.max()), 1e-300)
     # whitened χ² of the bin sums, with a common mean per pixel fitted (GLS) and removed: only differences
     # between bins count
@@ -164,7 +210,7 @@ def profile_test(kind: str, zsum: np.ndarray, rbar: np.ndarray, labels: np.ndarr
     noise = s2_dn * np.diag(geo)[have] / n[have] ** 2
     ms = float(np.mean(prof**2 - noise))
     rms = math.sqrt(max(ms, 0.0))
-    gain = float(np.mean(white_gain(labels, pattern_labels, nb)[have]))
+    gain = float(np.mean(gains[have]))
     total = float(np.mean(rbar[use] ** 2))
     share = max(ms, 0.0) / total if total > 0 else 0.0
     test = StructureTest(kind=kind, label=LABELS[kind], statistic=chi, df=float(df), p=p, p_holm=p, size=rms,

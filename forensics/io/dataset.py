@@ -16,6 +16,9 @@ The manifest has a header row and the columns
                uses such frames as zero light
 ``black_level`` the readout's black level in DN, when known (e.g. from the camera's raw
                metadata); the model check then uses it instead of estimating it
+``light``      the light level of a calibration frame (free text, e.g. the irradiance of a
+               photon-transfer series): frames that differ only in it are different
+               conditions for the model check
 ============== =========================================================
 
 Any other column is kept in :attr:`Frame.extra`.  A value missing from the
@@ -46,6 +49,8 @@ from forensics._shared.progress import Progress, no_progress
 MANIFEST = "manifest.csv"
 #: The ``subject`` of frames taken without light (compared case-insensitively).
 DARK_SUBJECT = "dark"
+#: The optional manifest column that tells light levels apart (an extra column: kept in :attr:`Frame.extra`).
+LIGHT_COLUMN = "light"
 STANDARD_COLUMNS = ("file", "device", "captured", "exposure_s", "iso", "temperature_c", "subject")
 _NUMERIC = ("exposure_s", "iso", "temperature_c")
 
