@@ -20,7 +20,7 @@ from forensics.check.classes import NORMAL
 from forensics.check.evidence import Evidence
 from forensics.check.identify import estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
-from forensics.check.pixelfit import fit_pixels
+from forensics.check.pixelfit import fit_pixels, used_blocks
 from forensics.check.pixels import PixelData, VarianceBins, pattern_size
 from forensics.check.prediction import predicted_variance
 from forensics.check.projection import PixelProjector, shrink_local
@@ -238,7 +238,7 @@ def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], l
     for i in p_idx:
         e = effects[i]
         for p in e.patterns(device):
-            used = np.unique(p.blocks[p.blocks >= 0])
+            used = used_blocks(p)
             if used.size == 0:
                 out.append(PatternEstimate(e.key, p.name, 0, 0.0, 0.0, p.hyper, None))
                 continue
