@@ -94,9 +94,13 @@ def readout_moments(mu, sigma, lo: int, hi: int, truncate: bool = False,
         return np.zeros(shape), np.zeros(shape)
     mean, var = np.empty(mu.shape), np.empty(mu.shape)
     smooth = _smooth_readout(mu, sigma, lo, hi, truncate, mean, var)
-    rest = ~smooth
-    if rest.any():
-        mean[rest], var[rest] = _summed_readout(mu[rest], sigma[rest], lo, hi, truncate, reach)
+    rest = np.flatnonzero(~smooth)
+    # the sum's window is set by the widest row summed together: sum rows of like width together (within a
+    # factor of 2), so a few wide ones do not widen every row's window
+    octave = np.floor(np.log2(_window(mu[rest], sigma[rest], lo, hi, reach))).astype(int)
+    for o in np.unique(octave):
+        at = rest[octave == o]
+        mean[at], var[at] = _summed_readout(mu[at], sigma[at], lo, hi, truncate, reach)
     return mean.reshape(shape), var.reshape(shape)
 
 
@@ -135,10 +139,17 @@ def _smooth_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
     return ok
 
 
+def _window(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, reach: float) -> np.ndarray:
+    """Per value, how many levels either side of clip(μ) carry mass above Φ(−reach): ``reach``·σ, less the
+    distance of μ beyond a bound (the levels past the bound do not exist), plus two."""
+    beyond = np.maximum(np.maximum(lo - mu, mu - hi), 0.0)
+    return np.ceil(np.maximum(reach * sigma - beyond, 0.0)) + 2.0
+
+
 def _summed_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncate: bool,
                     reach: float) -> tuple[np.ndarray, np.ndarray]:
     """The readout's moments summed over its integer levels within ``reach`` σ."""
-    half = math.ceil(reach * float(sigma.max())) + 2
+    half = int(_window(mu, sigma, lo, hi, reach).max())
     c = np.rint(np.clip(mu, lo, hi))
     offsets = np.arange(-half, half + 1, dtype=float)
     if 2 * half + 1 >= hi - lo + 1:  # the window covers the whole range: sum over every level
@@ -154,6 +165,8 @@ def _summed_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
     if truncate:
         p = np.where((k > lo) & (k < hi), p, 0.0)
     tot = p.sum(axis=1)
+    if truncate:  # no mass left inside (μ far beyond a bound): the limit is the inner level next to it
+        c = np.where(tot > 0, c, np.clip(c, lo + 1, hi - 1))
     tot = np.where(tot > 0, tot, 1.0)
     d = k - c[:, None]  # moments about c: no cancellation
     m1 = (p * d).sum(axis=1) / tot
