@@ -287,11 +287,13 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
         resid = StackAccumulator()
         previous = None
         frame_blocks = []
+        stacked_dtype = None  # what this condition's stack accumulates (set by its first frame)
         for j, i in enumerate(g.frames):
             img = ds.frames[i].load()
             dtype = img.dtype if dtype is None else dtype
             grey = grey_mean(img[crop], np.float64)
-            stacked = _stackable(img[crop], grey, whole)
+            stacked = _stackable(img[crop], grey, stacked_dtype)
+            stacked_dtype = stacked.dtype
             whole.add(stacked, name=ds.frames[i].file)
             halves[j % 2].add(stacked, name=ds.frames[i].file)
             if g.index in rpos:
@@ -322,19 +324,19 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     return meas
 
 
-def _stackable(frame: np.ndarray, grey: np.ndarray, acc: StackAccumulator) -> np.ndarray:
+def _stackable(frame: np.ndarray, grey: np.ndarray, first_dtype: np.dtype | None) -> np.ndarray:
     """What a condition's stack accumulates of a frame: a grey 8- or 16-bit frame as it is (the accumulator's
     exact integer sums: 20 bytes a pixel instead of 48, the same statistics), anything else as ``grey``
-    (float64).  A frame of another integer type than the condition's first one is converted to that type when
-    no value changes (else the accumulator reports the mixture)."""
+    (float64).  ``first_dtype`` is the type accumulated for the condition's first frame (None for that frame):
+    an integer frame that casts to it without loss is converted (8-bit among 16-bit), any other mixture is
+    left for the accumulator to report."""
     if frame.ndim != 2 or frame.dtype not in (np.uint8, np.uint16):
         return grey
-    first = acc._dtype  # None before the condition's first frame
-    if first is None or frame.dtype == first:
+    if first_dtype is None or frame.dtype == first_dtype:
         return frame
-    if first in (np.uint8, np.uint16) and np.can_cast(frame.dtype, first, "safe"):
-        return frame.astype(first)
-    return grey if first == np.float64 else frame
+    if first_dtype in (np.uint8, np.uint16) and np.can_cast(frame.dtype, first_dtype, "safe"):
+        return frame.astype(first_dtype)
+    return grey if first_dtype not in (np.uint8, np.uint16) else frame
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,12 @@ def normal_matrix(X: list[np.ndarray], weight: np.ndarray | None = None) -> np.n
     return A
 
 
+def dead_columns(A: np.ndarray) -> np.ndarray:
+    """Per pixel, the columns of a normal matrix ``(H, W, k, k)`` that carry no information ``(H, W, k)``."""
+    diag = np.einsum("...ii->...i", A)
+    return diag <= 1e-12 * (diag.max() if diag.size else 1.0)
+
+
 class PixelProjector:
     """Projection, pixel by pixel, off the span of per-pixel nuisance directions (weighted).
 
@@ -67,8 +73,7 @@ def solve_local(weight: np.ndarray, X: list[np.ndarray], r: np.ndarray) -> tuple
     k = len(X)
     A = normal_matrix(X, w)
     b = np.stack([np.einsum("r...,r...->...", X[i] * w, r) for i in range(k)], axis=-1)
-    diag = np.einsum("...ii->...i", A).copy()
-    dead = diag <= 1e-12 * (diag.max() if diag.size else 1.0)
+    dead = dead_columns(A)
     for i in range(k):
         A[..., i, i] = np.where(dead[..., i], 1.0, A[..., i, i] * (1 + 1e-10))
         b[..., i] = np.where(dead[..., i], 0.0, b[..., i])
@@ -95,8 +100,7 @@ def shrink_local(weight: np.ndarray, X: list[np.ndarray], coef: np.ndarray, prec
     A = normal_matrix(X, weight)
     k = len(X)
     prec = np.asarray(precision, float)
-    adiag = np.einsum("...ii->...i", A)
-    dead = adiag <= 1e-12 * (adiag.max() if adiag.size else 1.0)
+    dead = dead_columns(A)
     beta = np.moveaxis(coef, 0, -1)
     rhs = np.einsum("...ij,...j->...i", A, beta)
     M = A + np.diag(np.where(np.isfinite(prec), prec, 0.0))
