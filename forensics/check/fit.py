@@ -18,7 +18,7 @@ from scipy import optimize
 from forensics.check.arrivals import DefectCounts
 from forensics.check.classes import NORMAL
 from forensics.check.evidence import Evidence
-from forensics.check.identify import estimates
+from forensics.check.identify import bounded_step, estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
 from forensics.check.pixels import PixelData, VarianceBins, pattern_size
@@ -132,13 +132,16 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         effects[i] = bespoke_fit(effects[i], ev)
     pix = fit_pixels(ev, pixels, device, effects, p_idx, params, max_cycles)
     effects = pix.effects
-    projector = PixelProjector([c * np.sqrt(pixels.weight) for c in pix.nuisance])
+    projector = PixelProjector([c * np.sqrt(pixels.weight) for c in pix.nuisance],
+                               [p.random_effect for _, p in pix.local])
     effects, patterns = pattern_summaries(on_device(device, effects), effects, p_idx, pix.local, pix.local_var)
     patterns = with_sizes(ev, pixels, patterns, pix.local, effects, pix.nuisance)
     shrink_random_effects(pixels, pix.local, pix.nuisance, patterns, effects)
     # ---------------------------------------------------------------- variance
     for i in n_idx:
         effects[i] = bespoke_fit(effects[i], ev)
+    # the noise laws see the fitted pixel effects (an analog gain amplifies the noise before it)
+    device = on_device(device, effects)
     noise, vpred, vjac = fit_variance(pixels.bins, ev.rgroups, [effects[i] for i in n_idx], device, params)
     for i, e in zip(n_idx, noise):
         effects[i] = e
@@ -226,6 +229,11 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
     return arr, expected, [(arr[j].key, n) for j, n in free], jac
 
 
+def _default(effect: Effect, name: str) -> float:
+    """The declared default of a parameter (its ``param(default, …)``)."""
+    return float(next(f.default for f in dataclasses.fields(effect) if f.name == name))
+
+
 def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], local: list,
                       local_var: np.ndarray | None) -> tuple[list[Effect], list[PatternEstimate]]:
     """Each fixed pattern's size (rms of its fitted values less their estimation noise), and the effects with
@@ -247,8 +255,9 @@ def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], l
             item = var_by_id.get((p.name, e.key))
             noise = 0.0
             if item is not None:
-                m = item[0] >= 0
-                noise = float(np.nanmean(item[1][m])) if m.any() else 0.0
+                v = item[1][item[0] >= 0]
+                v = v[np.isfinite(v)]  # NaN: not determined at that pixel (collinear with another pattern)
+                noise = float(v.mean()) if v.size else 0.0
             rms = math.sqrt(max(ms - noise, 0.0))
             hyper_value = None
             if p.hyper:
@@ -313,6 +322,11 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
                  params: list[ParamEstimate]) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
     """Fit the noise effects to the log binned variances (weighted Gauss–Newton with step halving).
 
+    Two starts: the effects as given (the null values: the smaller model), and each free parameter that sits
+    at its null value moved to its default; the better fit is kept, so the result is never worse than the
+    smaller model.  Why a second start: a noise σ enters the variance as σ², whose derivative is 0 at σ = 0,
+    so a fit started there never leaves it.
+
     Returns (fitted noise effects, predicted variance per bin, Jacobian of the log prediction) and appends the
     estimates to ``params``.
     """
@@ -332,28 +346,46 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
             cols.append((log_pred(with_param(effs, j, n, v + d)) - pred) / d)
         return np.array(cols)
 
+    def chi2(effs: list[Effect]) -> float:
+        return float(np.sum(w * (y - log_pred(effs)) ** 2))
+
     converged = True
     if free and len(y):
-        converged = False
-        for _ in range(30):
-            pred = log_pred(noise)
-            r = y - pred
-            J = jacobian(noise, pred)
-            step = np.linalg.lstsq((J * w) @ J.T, (J * w) @ r, rcond=None)[0]
-            old = [getattr(noise[j], n) for j, n in free]
-            chi_old = float(np.sum(w * r * r))
-            start = noise
-            for _ in range(20):
-                trial = start
-                for (j, n), v, s in zip(free, old, step):
-                    trial = with_clipped_param(trial, j, n, v + s)
-                if float(np.sum(w * (y - log_pred(trial)) ** 2)) <= chi_old:
-                    noise = trial
-                    break
-                step = step / 2
-            if np.all(np.abs(step) <= 1e-7 * (1 + np.abs(old))):
-                converged = True
-                break
+        lower = np.array([noise[j].bounds(n)[0] for j, n in free])
+        upper = np.array([noise[j].bounds(n)[1] for j, n in free])
+
+        def descend(effs: list[Effect]) -> tuple[list[Effect], float, bool]:
+            chi_old = chi2(effs)
+            for _ in range(50):
+                pred = log_pred(effs)
+                J = jacobian(effs, pred)
+                old = np.array([getattr(effs[j], n) for j, n in free], float)
+                step = bounded_step((J * w) @ J.T, (J * w) @ (y - pred), old, lower, upper)
+                for _ in range(20):
+                    trial = effs
+                    for (j, n), v, s in zip(free, old, step):
+                        trial = with_clipped_param(trial, j, n, v + s)
+                    chi_new = chi2(trial)
+                    if chi_new <= chi_old:
+                        break
+                    step = step / 2
+                else:
+                    return effs, chi_old, True  # no step lowers χ²: a (bounded) minimum
+                effs, gain = trial, chi_old - chi_new
+                chi_old = chi_new
+                if np.all(np.abs(step) <= 1e-7 * (1 + np.abs(old))) or gain <= 1e-10 * max(chi_new, 1.0):
+                    return effs, chi_new, True
+            return effs, chi_old, False
+
+        starts = [noise]
+        moved = list(noise)
+        for j, n in free:
+            if getattr(noise[j], n) == noise[j].null_values().get(n, None):
+                moved = with_param(moved, j, n, _default(noise[j], n))
+        if any(a is not b for a, b in zip(moved, noise)):
+            starts.append(moved)
+        fits = [descend(start) for start in starts]
+        noise, _, converged = min(fits, key=lambda f: f[1])
         jac = jacobian(noise, log_pred(noise))
         params += estimates(noise, free, (jac * w) @ jac.T, converged)
     return noise, predicted_variance(bins, rgroups, noise, device), jac

@@ -23,6 +23,19 @@ from forensics.sensor.model import Effect
 NULL_DIRECTION = 1e-9
 #: A parameter loading a null direction more than this (unit eigenvector) is part of it.
 LOADING = 0.1
+#: A parameter whose change by its own size (1 + |value|) moves χ² by less than this carries no information
+#: (its standard error would exceed 1,000 times its size): what the fit sees of it is finite-difference noise.
+NO_INFORMATION = 1e-6
+
+
+def informative(information: np.ndarray, values: np.ndarray | None) -> np.ndarray:
+    """Per parameter, whether the data say anything about it: a positive, finite diagonal of the information
+    matrix, and (given the values) one above :data:`NO_INFORMATION` on the parameter's own scale."""
+    diag = np.diag(np.asarray(information, float))
+    ok = np.isfinite(diag) & (diag > 0)
+    if values is not None:
+        ok &= diag * (1.0 + np.abs(np.asarray(values, float))) ** 2 >= NO_INFORMATION
+    return ok
 
 
 @dataclass(frozen=True)
@@ -38,16 +51,16 @@ class Identification:
         return float(np.sqrt(max(v, 0.0))) if np.isfinite(v) else None
 
 
-def identify(information: np.ndarray, names: Sequence[str]) -> Identification:
-    """Split parameters into identifiable and not, from their information matrix ``H`` (k × k)."""
+def identify(information: np.ndarray, names: Sequence[str], values: Sequence[float] | None = None) -> Identification:
+    """Split parameters into identifiable and not, from their information matrix ``H`` (k × k) and, when
+    given, their values (:func:`informative`)."""
     H = np.asarray(information, float)
     k = len(names)
     why = [""] * k
-    ok = np.ones(k, bool)
+    ok = informative(H, None if values is None else np.asarray(values, float)) if k else np.ones(0, bool)
     diag = np.diag(H) if k else np.zeros(0)
     for i in range(k):
-        if not np.isfinite(diag[i]) or diag[i] <= 0:
-            ok[i] = False
+        if not ok[i]:
             why[i] = "the data carry no information on it"
     idx = np.flatnonzero(ok)
     if idx.size > 1:
@@ -73,7 +86,7 @@ def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], inform
     """Estimates of the ``free`` parameters ``(effect index, name)`` with standard errors from their information
     matrix; parameters the data do not determine are reported as not identifiable (:mod:`.identify`)."""
     names = [f"{effects[j].key}.{n}" for j, n in free]
-    ident = identify(information, names)
+    ident = identify(information, names, [float(getattr(effects[j], n)) for j, n in free])
     out = []
     for i, (j, n) in enumerate(free):
         value = float(getattr(effects[j], n))
@@ -84,3 +97,46 @@ def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], inform
         out.append(ParamEstimate(effects[j].key, n, value, ident.se(i) if ok and converged else None,
                                  unit(effects[j], n), identifiable=ok, converged=converged, note=note))
     return out
+
+
+def bounded_step(information: np.ndarray, gradient: np.ndarray, values: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray) -> np.ndarray:
+    """A Gauss–Newton step ``H·s = g`` that respects bounds and null directions.
+
+    The step is solved on the unit-diagonal scaling of ``H`` with its null directions (:data:`NULL_DIRECTION`)
+    left out — the data do not say how far to move along them, so the step does not (an unscaled
+    least-squares solve moved a black level and a dark offset, collinear before a gain is fitted, by
+    thousands of DN).  A parameter the step would take past a bound is set onto the bound and held there
+    while the others are solved again (an active set), so a parameter resting on its bound does not keep
+    proposing a step it cannot take.  A parameter the data carry no information on (:func:`informative`)
+    does not move.
+    """
+    H = np.asarray(information, float)
+    g = np.asarray(gradient, float)
+    v = np.asarray(values, float)
+    k = len(g)
+    step = np.zeros(k)
+    held = ~informative(H, v) if k else np.zeros(0, bool)  # nothing to say how far: stay
+    for _ in range(k + 1):
+        free = np.flatnonzero(~held)
+        rhs = g[free] - H[np.ix_(free, np.flatnonzero(held))] @ step[held]
+        step[free] = _scaled_solve(H[np.ix_(free, free)], rhs)
+        out = ~held & ((v + step < lower) | (v + step > upper))
+        if not out.any():
+            break
+        step[out] = np.clip(v[out] + step[out], lower[out], upper[out]) - v[out]
+        held |= out
+    return step
+
+
+def _scaled_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    if H.size == 0:
+        return np.zeros(0)
+    diag = np.diag(H)
+    live = np.isfinite(diag) & (diag > 0)
+    scale = np.sqrt(np.where(live, diag, 1.0))
+    C = np.where(np.outer(live, live), H / np.outer(scale, scale), 0.0)
+    lam, vec = np.linalg.eigh(C)
+    keep = lam > NULL_DIRECTION * max(float(lam.max()), 1e-300)
+    inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
+    return np.where(live, inv @ np.where(live, g / scale, 0.0), 0.0) / scale

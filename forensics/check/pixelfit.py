@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from forensics.check.evidence import Evidence
-from forensics.check.identify import estimates
+from forensics.check.identify import bounded_step, estimates
 from forensics.check.params import on_device, with_clipped_param, with_param
 from forensics.check.pixels import PixelData
 from forensics.check.projection import PixelProjector, solve_local
@@ -66,7 +66,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         return ev.predictor.predict(dev, pixels, "a", clip)
 
     def refit_local(dev: Device, X_local: list[np.ndarray], mu: np.ndarray) -> np.ndarray:
-        coef, _ = solve_local(w, X_local, y - mu)
+        coef, _ = solve_local(w, X_local, y - mu, centred)
         for (_, p), c in zip(local, coef):
             m = p.blocks >= 0
             p.values[p.blocks[m]] += c[m]
@@ -75,6 +75,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     dev = on_device(device, effects)
     pats = [(i, p) for i in pixel_idx for p in effects[i].patterns(dev)]
     local = [(i, p) for i, p in pats if p.pixel_local]
+    centred = [p.random_effect for _, p in local]  # zero-mean patterns: their mean belongs to the globals
     other = [(i, p) for i, p in pats if not p.pixel_local]
     glob = [(i, n) for i in pixel_idx for n in effects[i].free_params()]
     chi_prev = np.inf
@@ -100,7 +101,8 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             mu = predict(dev)
         # -- global parameters: profiled Gauss–Newton with step halving
         if glob:
-            effects, H = _global_step(predict, refit_local, device, effects, glob, pats, local, X_local, y, w, mu)
+            effects, H = _global_step(predict, refit_local, device, effects, glob, pats, local, X_local, y, w, mu,
+                                      centred)
             dev = on_device(device, effects)
         mu = predict(dev)
         chi = float(np.sum(w * (y - mu) ** 2))
@@ -112,7 +114,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     mu = np.clip(raw, 0.0, fs)
     if local:
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
-        _, local_var = solve_local(w, X_local, y - mu)
+        _, local_var = solve_local(w, X_local, y - mu, centred)
     if glob:
         params += estimates(effects, glob, H, converged and np.isfinite(chi))
     return PixelFit(effects, mu, X_local, local, local_var)
@@ -120,14 +122,14 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
 
 def _global_step(predict, refit_local, device: Device, effects: list[Effect], glob: list[tuple[int, str]],
                  pats: list[tuple[int, Pattern]], local: list, X_local: list[np.ndarray], y: np.ndarray,
-                 w: np.ndarray, mu: np.ndarray) -> tuple[list[Effect], np.ndarray]:
+                 w: np.ndarray, mu: np.ndarray, centred: list[bool]) -> tuple[list[Effect], np.ndarray]:
     """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
     does not increase (at most 8 times; else the old values stay).  Returns the effects and the Gauss–Newton
     matrix (for standard errors)."""
     dev = on_device(device, effects)
     r = y - mu
     raw = predict(dev, clip=False)
-    proj = PixelProjector([c * np.sqrt(w) for c in X_local])
+    proj = PixelProjector([c * np.sqrt(w) for c in X_local], centred)
     J = []
     for i, n in glob:
         v = getattr(effects[i], n)
@@ -140,8 +142,10 @@ def _global_step(predict, refit_local, device: Device, effects: list[Effect], gl
     zr = proj.project(r * np.sqrt(w))
     H = np.array([[np.sum(a * b) for b in J] for a in J])
     g = np.array([np.sum(a * zr) for a in J])
-    step = np.linalg.lstsq(H + 1e-9 * np.diag(np.diag(H) + 1e-30), g, rcond=None)[0]
     old = [getattr(effects[i], n) for i, n in glob]
+    lower = np.array([effects[i].bounds(n)[0] for i, n in glob])
+    upper = np.array([effects[i].bounds(n)[1] for i, n in glob])
+    step = bounded_step(H, g, np.array(old, float), lower, upper)
     old_vals = [p.values.copy() for _, p in pats]
     chi_old = float(np.sum(w * r * r))
     for _ in range(8):

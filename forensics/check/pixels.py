@@ -34,7 +34,7 @@ class NoiseFloor:
 
     Where a pixel's prediction uses the scene estimate (every pixel but stuck ones, in frames with light), the
     floor is fitted to the temporal variance of each frame's residual from its own scene estimate,
-    v(level) = a_g + b·level — the noise a residual actually has, whatever the temporal noise's spatial
+    v(level) = a_g + b_g·level — the noise a residual actually has, whatever the temporal noise's spatial
     correlation and whether or not the frames' level drifts — and stored divided by the scene-noise factor
     1 + Σw² the pixel channel multiplies it by: ``floor · (1 + Σw²) / n`` is then the measured variance of a
     residual of a mean of ``n`` frames.  Elsewhere (stuck pixels, dark frames) the prediction does not use the
@@ -42,11 +42,11 @@ class NoiseFloor:
     """
 
     a: np.ndarray  #: per condition, the residual law's intercept (DN²)
-    b: float  #: the residual law's slope (DN)
+    b: np.ndarray  #: per condition, the residual law's slope (DN)
     floor: np.ndarray  #: per-frame temporal variance at each (condition, pixel), as described above
     raw: np.ndarray  #: the same from each pixel's own sample variance (quantisation variance for noiseless stuck pixels)
     a_grey: np.ndarray | None = None  #: the pixel's own variance law: intercept per condition
-    b_grey: float = 0.0  #: and slope
+    b_grey: np.ndarray | None = None  #: and slope
 
 
 @dataclass(frozen=True)
@@ -61,6 +61,21 @@ class VarianceBins:
     spread: np.ndarray | None = None
     #: the data's full scale (readouts lie in [0, full_scale]); None: no bounds
     full_scale: float | None = None
+    #: (R, H, W) the bin each pixel's variance went into (−1: none), to average per-pixel quantities per bin
+    labels: np.ndarray | None = None
+
+    def bin_means(self, r: int, values: np.ndarray | float) -> np.ndarray:
+        """Per bin of repeated condition ``r`` (in the order of ``group == r``), the mean of ``values`` — a
+        number, or an ``(H, W)`` array averaged over the bin's pixels."""
+        idx = np.flatnonzero(self.group == r)
+        if np.ndim(values) == 0 or self.labels is None:
+            mean = float(np.mean(values)) if np.ndim(values) else float(values)
+            return np.full(idx.size, mean)
+        lab = self.labels[r]
+        m = lab >= 0
+        total = np.bincount(lab[m], np.broadcast_to(values, lab.shape)[m], minlength=len(self.group))
+        count = np.bincount(lab[m], minlength=len(self.group))
+        return total[idx] / np.maximum(count[idx], 1)
 
 
 @dataclass(frozen=True)
@@ -119,26 +134,40 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
                      fill_a, fill_b, refill_ops, noise, var_a, weight, bins)
 
 
-def variance_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
-    """σ²(level) = a_g + b·level fitted to ``var`` over ``mask`` (per condition g; one common slope b).
+#: A pool of conditions with fewer pixels than this in the mask takes the slope pooled over all conditions.
+POOL_PIXELS = 1000
 
-    Conditions with fewer than 10 pixels in ``mask`` do not inform the slope; a condition with none takes the
-    median of its ``var`` as intercept.
+
+def variance_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray,
+                 pools: Sequence[Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """σ²(level) = a_g + b_g·level fitted to ``var`` over ``mask``: an intercept per condition g and a slope
+    per pool of conditions (``pools``: a label per condition; None: one pool).
+
+    A pool with fewer than :data:`POOL_PIXELS` pixels takes the slope pooled over all conditions (a condition
+    with fewer than 10 pixels has no say in a slope); a condition with none takes the median of its ``var``
+    as intercept.
     """
-    a = np.zeros(len(level))
-    num = den = 0.0
-    for r in range(len(level)):
+    n = len(level)
+    labels = [0] * n if pools is None else list(pools)
+    a = np.zeros(n)
+    sums: dict[Any, list[float]] = {}
+    for r in range(n):
         m = mask[r]
         lv, vv = level[r][m], var[r][m]
         if lv.size < 10:
             continue
         lc = lv - lv.mean()
-        num += float(np.sum(lc * (vv - vv.mean())))
-        den += float(np.sum(lc * lc))
-    b = num / den if den > 0 else 0.0
-    for r in range(len(level)):
+        acc = sums.setdefault(labels[r], [0.0, 0.0, 0.0])
+        acc[0] += float(np.sum(lc * (vv - vv.mean())))
+        acc[1] += float(np.sum(lc * lc))
+        acc[2] += lv.size
+    num, den = sum(v[0] for v in sums.values()), sum(v[1] for v in sums.values())
+    common = num / den if den > 0 else 0.0
+    slope = {k: v[0] / v[1] if v[2] >= POOL_PIXELS and v[1] > 0 else common for k, v in sums.items()}
+    b = np.array([slope.get(labels[r], common) for r in range(n)])
+    for r in range(n):
         m = mask[r]
-        a[r] = float(np.mean(var[r][m] - b * level[r][m])) if m.any() else float(np.median(var[r]))
+        a[r] = float(np.mean(var[r][m] - b[r] * level[r][m])) if m.any() else float(np.median(var[r]))
     return a, b
 
 
@@ -160,9 +189,23 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
     level = meas.mean_all[rep]
     var = meas.var_all[rep]
     normal = usable & (classes == NORMAL)
+    # Slopes of the variance laws are pooled over the conditions of one analog gain (ISO): the slope is the
+    # conversion gain, which the ISO setting multiplies; across light levels it is well determined.  Within a
+    # dark frame the levels spread by offsets that carry no shot noise (DSNU): its law has its own slope
+    # (≈ 0) — the gain's slope made low dark pixels look noiseless, weighted them 10–100× and biased the
+    # dark levels by ~0.5 DN (emva1288 series).
+    gain_pools = [g.iso for g in rgroups]
+    dark = dark_groups(rgroups)
     # the pixel's own variance: stuck pixels and dark frames (predictions that do not use the neighbours)
-    a_grey, b_grey = variance_law(level, var, normal)
-    own = np.maximum(a_grey[:, None, None] + b_grey * level, QUANT_VAR)
+    a_grey, b_grey = variance_law(level, var, normal, gain_pools)
+    own = np.maximum(a_grey[:, None, None] + b_grey[:, None, None] * level, QUANT_VAR)
+    if dark.any():
+        a_dark, b_dark = variance_law(level, var, normal, [("dark", r) if d else g for r, (d, g) in
+                                                           enumerate(zip(dark, gain_pools))])
+        own_dark = np.maximum(a_dark[:, None, None] + b_dark[:, None, None] * level, QUANT_VAR)
+        # normal pixels only: a hot pixel's excess is charge (dark current) with its shot noise, which the
+        # gain's law describes
+        own = np.where(dark[:, None, None] & (classes == NORMAL), own_dark, own)
     constant = np.all(var == 0, axis=0)[None] & (classes == STK)  # noiseless stuck pixels: only quantisation remains
     own = np.where(constant, QUANT_VAR, own)
     own_raw = np.maximum(var, QUANT_VAR * constant)
@@ -170,9 +213,9 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
     # have, with the noise's spatial correlation and without the frames' level changes
     scene = uses_scene(classes, rgroups)
     resid = meas.var_resid[rep] if meas.var_resid is not None else var * (1.0 + KERNEL_VAR)
-    a, b = variance_law(level, resid, normal & scene)
+    a, b = variance_law(level, resid, normal & scene, gain_pools)
     factor = 1.0 + KERNEL_VAR
-    smooth = np.maximum(a[:, None, None] + b * level, QUANT_VAR * factor) / factor
+    smooth = np.maximum(a[:, None, None] + b[:, None, None] * level, QUANT_VAR * factor) / factor
     floor = np.where(scene, smooth, own)
     raw = np.where(scene, np.maximum(resid, QUANT_VAR * factor) / factor, own_raw)
     return NoiseFloor(a, b, floor, raw, a_grey, b_grey)
@@ -204,6 +247,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     rows = []
     spread = []
     qs = (np.arange(n_spread) + 0.5) / n_spread
+    labels = np.full(usable.shape, -1, np.int16 if n_bins * len(rgroups) < 2**15 else np.int32)
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
         if m.sum() < 30:
@@ -219,6 +263,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
             sv = float(v.var(ddof=1))
             if sv > 0:
                 df = min(df, 2.0 * float(v.mean()) ** 2 * v.size / sv)
+            labels[r][m] = len(rows)
             rows.append((r, float(lev.mean()), float(v.mean()), df))
             # the scene estimate's outlier rejection leans low where most readouts sit on a bound: centre it on
             # the mean readout of all normal pixels (a plain average of the clipped readout, unbiased)
@@ -227,15 +272,17 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
             continue
         edges = np.quantile(lev, np.linspace(0, 1, n_bins + 1))
         which = np.clip(np.searchsorted(edges, lev, side="right") - 1, 0, n_bins - 1)
+        sites = np.flatnonzero(m.ravel())  # lev's pixels, in the order of the boolean index
         for k in range(n_bins):
             s = which == k
             if s.sum() < 10:
                 continue
+            labels[r].reshape(-1)[sites[s]] = len(rows)
             rows.append((r, float(lev[s].mean()), float(v[s].mean()), int(s.sum() * (g.n - 1))))
             spread.append(np.full(n_spread, np.nan))
     return VarianceBins(np.array([x[0] for x in rows], int), np.array([x[1] for x in rows]),
                         np.maximum(np.array([x[2] for x in rows]), 1e-12), np.array([x[3] for x in rows], float),
-                        np.array(spread).reshape(len(rows), n_spread), float(meas.full_scale))
+                        np.array(spread).reshape(len(rows), n_spread), float(meas.full_scale), labels)
 
 
 #: Side of the scene estimate that measures a pattern's size: wide enough to leave almost all of a pattern

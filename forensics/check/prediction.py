@@ -150,11 +150,12 @@ def censored_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: f
     noise = [e for e in ctx.device.model.effects if e.stage == Stage.NOISE]
     out = np.clip(mu, 0.0, full_scale)
     hi = round(float(full_scale))
-    sd = np.sqrt(noise_variance(noise, out, ctx) + QUANT_VAR)
+    elec = np.broadcast_to(ctx.electronic_offset, out.shape)
+    sd = np.sqrt(noise_variance(noise, out, ctx, elec) + QUANT_VAR)
     near = (out < reach * sd + 1.0) | (out > hi - reach * sd - 1.0)
     if hi < 3 or not near.any():
         return out
-    sigma = np.sqrt(noise_variance(noise, mu[near], ctx))
+    sigma = np.sqrt(noise_variance(noise, mu[near], ctx, elec[near]))
     out[near] = readout_moments(mu[near], sigma, 0, hi, truncate=True)[0]
     return out
 
@@ -167,17 +168,20 @@ def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effec
     for r in np.unique(bins.group):
         sel = bins.group == r
         ctx = context(device, rgroups[r])
-        out[sel] += noise_variance(noise_effects, bins.level[sel], ctx)
+        elec = bins.bin_means(r, ctx.electronic_offset)
+        out[sel] += noise_variance(noise_effects, bins.level[sel], ctx, elec)
         if bins.spread is not None and bins.full_scale is not None:
-            near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, out)
+            near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, out, elec)
     return np.maximum(out, 1e-12)
 
 
-def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: FrameContext) -> np.ndarray:
-    """Temporal variance the noise effects add at output ``level`` (their laws see the level above the
-    readout's offset, :attr:`~forensics.sensor.model.FrameContext.readout_offset`)."""
+def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: FrameContext,
+                   electronic: np.ndarray | float = 0.0) -> np.ndarray:
+    """Temporal variance the noise effects add at output ``level`` (their laws see the charge signal: the level
+    above the readout's offset, :attr:`~forensics.sensor.model.FrameContext.readout_offset`, less the
+    ``electronic`` offsets of those pixels, :attr:`~forensics.sensor.model.FrameContext.electronic_offset`)."""
     level = np.asarray(level, float)
-    above = level - (ctx.readout_offset if ctx is not None else 0.0)
+    above = level - (ctx.readout_offset if ctx is not None else 0.0) - np.asarray(electronic, float)
     out = np.zeros(level.shape)
     for e in noise_effects:
         out += np.asarray(e.variance(above, ctx), float)
@@ -185,7 +189,7 @@ def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: Fram
 
 
 def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_effects: Sequence[Effect],
-               out: np.ndarray, iterations: int = 50) -> None:
+               out: np.ndarray, electronic: np.ndarray | None = None, iterations: int = 50) -> None:
     """Predict ``out[idx]`` for the bins near a bound (those with a ``spread``; see
     :func:`~forensics.check.pixels.variance_bins`) from the quantised, clipped readout.
 
@@ -201,14 +205,15 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
     if not near.any() or hi < 3:
         return
     m = spread[near]
-    s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx) + QUANT_VAR)
+    elec = (np.zeros(len(idx)) if electronic is None else np.asarray(electronic, float))[near][:, None]
+    s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx, elec) + QUANT_VAR)
     a, b = m - 10.0 * s - 2.0, m + 10.0 * s + 2.0
     for _ in range(iterations):
         mid = 0.5 * (a + b)
-        mean, _ = readout_moments(mid, np.sqrt(noise_variance(noise_effects, mid, ctx)), lo, hi)
+        mean, _ = readout_moments(mid, np.sqrt(noise_variance(noise_effects, mid, ctx, elec)), lo, hi)
         below = mean < m
         a = np.where(below, mid, a)
         b = np.where(below, b, mid)
     mu = 0.5 * (a + b)
-    _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx)), lo, hi, truncate=True)
+    _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx, elec)), lo, hi, truncate=True)
     out[idx[near]] = var.mean(axis=1)

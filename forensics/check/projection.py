@@ -17,33 +17,80 @@ def normal_matrix(X: list[np.ndarray], weight: np.ndarray | None = None) -> np.n
     return A
 
 
+#: Per pixel, an eigenvalue of the scaled (unit-diagonal) normal matrix below this is a direction the data do
+#: not determine.  The columns are finite-difference derivatives of a float prediction, so two columns that
+#: are the same function of the conditions (a defect's offset and the DSNU value at its pixel) come out
+#: correlated to ~1 − 1e-9, not exactly 1; a pair this close to collinear is not separable by any data.
+LOCAL_NULL = 1e-7
+
+
+def scaled_pinv(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the pseudo-inverse of a normal matrix ``A`` (…, k, k), computed on its unit-diagonal scaling
+    with null directions (:data:`LOCAL_NULL`) dropped, and which columns it leaves undetermined (…, k).
+
+    Why not ``inv(A + ridge)``: where two columns are collinear at a pixel (a partially stuck pixel's own
+    offset and the per-pixel DSNU), the ridged inverse splits their common value into ±10⁵ that cancel; kept
+    in float32 patterns, the cancellation is noise in every later prediction.  The pseudo-inverse gives the
+    minimum-norm split, and the prediction is the same.
+    """
+    k = A.shape[-1]
+    diag = np.einsum("...ii->...i", A)
+    dead = dead_columns(A)
+    scale = np.sqrt(np.where(dead, 1.0, diag))
+    S = A / (scale[..., :, None] * scale[..., None, :])
+    live = ~dead
+    S = np.where(live[..., :, None] & live[..., None, :], S, 0.0)
+    lam, vec = np.linalg.eigh(S)
+    keep = lam > LOCAL_NULL * np.maximum(lam[..., -1:], 1e-300)
+    inv_lam = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    inv = np.einsum("...ik,...k,...jk->...ij", vec, inv_lam, vec)
+    inv /= scale[..., :, None] * scale[..., None, :]
+    undetermined = np.einsum("...ik,...k->...i", vec**2, (~keep).astype(float)) > 1e-6
+    return inv, undetermined | dead
+
+
 def dead_columns(A: np.ndarray) -> np.ndarray:
     """Per pixel, the columns of a normal matrix ``(H, W, k, k)`` that carry no information ``(H, W, k)``."""
     diag = np.einsum("...ii->...i", A)
     return diag <= 1e-12 * (diag.max() if diag.size else 1.0)
 
 
+def common_mode(inv: np.ndarray, coef: np.ndarray, centred: np.ndarray) -> np.ndarray | None:
+    """The per-pixel change of least-squares coefficients that makes the ``centred`` columns' coefficients
+    sum to zero over the pixels (the constrained least-squares solution): ``− A⁺[:, C]·G⁻¹·Σ_p β_C`` with
+    ``G = Σ_p A⁺[C, C]``.  ``inv`` (…, k, k) the per-pixel pseudo-inverses, ``coef`` (…, k) the coefficients.
+
+    Why: a random-effect pattern (PRNU, DSNU, DCNU) has zero mean by definition, and its mean is collinear
+    with a global parameter (the DSNU's mean with a dark offset, the DCNU's with the mean dark rate).
+    Unconstrained, the split between the two is arbitrary, and the global parameter is then fitted from
+    whatever else touches it — the neighbours' scene estimates — and comes out biased.
+    """
+    cols = np.flatnonzero(centred)
+    if cols.size == 0:
+        return None
+    flat_inv = inv.reshape(-1, *inv.shape[-2:])
+    G = flat_inv[:, cols][:, :, cols].sum(axis=0)
+    total = coef.reshape(-1, coef.shape[-1])[:, cols].sum(axis=0)
+    lam = np.linalg.lstsq(G, total, rcond=None)[0]
+    return -np.einsum("...ic,c->...i", inv[..., :, cols], lam)
+
+
 class PixelProjector:
     """Projection, pixel by pixel, off the span of per-pixel nuisance directions (weighted).
 
     ``columns`` are arrays ``(R, H, W)`` already multiplied by √weight; for each pixel the projection acts on the
-    vector over conditions.
+    vector over conditions.  Columns flagged ``centred`` (random-effect patterns) have coefficients that sum to
+    zero over the pixels (:func:`common_mode`): their common mode is not a nuisance direction, so it stays.
     """
 
-    def __init__(self, columns: list[np.ndarray]):
+    def __init__(self, columns: list[np.ndarray], centred: list[bool] | None = None):
         self.cols = columns
         k = len(columns)
+        self.centred = np.zeros(k, bool) if centred is None else np.asarray(centred, bool)
         if k == 0:
             self.inv = None
             return
-        gram = normal_matrix(columns)
-        diag = np.einsum("...ii->...i", gram)
-        scale = np.where(diag > 0, diag, 1.0)
-        norm = np.sqrt(scale[..., :, None] * scale[..., None, :])
-        g = gram / norm
-        for i in range(k):
-            g[..., i, i] = np.where(diag[..., i] > 0, g[..., i, i] + 1e-10, 1.0)
-        self.inv = np.linalg.inv(g) / norm
+        self.inv = scaled_pinv(normal_matrix(columns))[0]
 
     def project(self, x: np.ndarray) -> np.ndarray:
         if self.inv is None:
@@ -51,6 +98,9 @@ class PixelProjector:
         k = len(self.cols)
         b = np.stack([np.einsum("r...,r...->...", c, x) for c in self.cols], axis=-1)
         coef = np.einsum("...ij,...j->...i", self.inv, b)
+        shift = common_mode(self.inv, coef, self.centred)
+        if shift is not None:
+            coef += shift
         out = x.copy()
         for j in range(k):
             out -= coef[..., j][None] * self.cols[j]
@@ -67,23 +117,25 @@ class PixelProjector:
         return h
 
 
-def solve_local(weight: np.ndarray, X: list[np.ndarray], r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel weighted least squares of ``r`` on the columns ``X``: (coefficients (k,H,W), their variances)."""
+def solve_local(weight: np.ndarray, X: list[np.ndarray], r: np.ndarray,
+                centred: list[bool] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel weighted least squares of ``r`` on the columns ``X``: (coefficients (k,H,W), their variances).
+
+    Where columns are collinear at a pixel the coefficients are the minimum-norm solution and their variances
+    NaN (not determined there), as for a column without information (:func:`scaled_pinv`).  The coefficients
+    of ``centred`` columns sum to zero over the pixels (:func:`common_mode`); the variances are the
+    unconstrained ones (one constraint over many pixels changes them by ~1/n)."""
     w = weight
     k = len(X)
     A = normal_matrix(X, w)
     b = np.stack([np.einsum("r...,r...->...", X[i] * w, r) for i in range(k)], axis=-1)
-    dead = dead_columns(A)
-    for i in range(k):
-        A[..., i, i] = np.where(dead[..., i], 1.0, A[..., i, i] * (1 + 1e-10))
-        b[..., i] = np.where(dead[..., i], 0.0, b[..., i])
-        for j in range(k):
-            if i != j:
-                A[..., i, j] = np.where(dead[..., i] | dead[..., j], 0.0, A[..., i, j])
-    inv = np.linalg.inv(A)
+    inv, undetermined = scaled_pinv(A)
     coef = np.einsum("...ij,...j->...i", inv, b)
+    shift = common_mode(inv, coef, np.zeros(k, bool) if centred is None else np.asarray(centred, bool))
+    if shift is not None:
+        coef += shift
     var = np.einsum("...ii->...i", inv).copy()
-    var[dead] = np.nan
+    var[undetermined] = np.nan
     return np.moveaxis(coef, -1, 0), np.moveaxis(var, -1, 0)
 
 

@@ -267,6 +267,10 @@ class Dsnu(Effect):
         signal += per_pixel(ctx.device.state[self.key], signal)
         return signal
 
+    def electronic(self, ctx: FrameContext) -> np.ndarray | float:
+        # an offset of the pixel's electronics, not collected charge: no shot noise on it
+        return ctx.device.state.get(self.key, 0.0)
+
     def patterns(self, device: Device) -> list[Pattern]:
         h, w = device.model.shape
         return [Pattern("o", device.state[self.key].reshape(-1), np.arange(h * w).reshape(h, w), hyper="sigma_o")]
@@ -329,6 +333,10 @@ class DarkCurrent(Effect):
                 Pattern("rate", cat.extra[self._defect_key], record_blocks(cat, device.model.shape, PARTIAL),
                         hyper="rate_max", summary="max")]
 
+    def electronic(self, ctx: FrameContext) -> float:
+        # μ_d0, the dark signal at zero exposure, is the electronics' offset; the thermal electrons are charge
+        return self.offset
+
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         factor = thermal_factor(ctx, self.name, self.t_ref, self.t_double)
         per_px = ctx.device.state.get(self.key)
@@ -389,7 +397,8 @@ class Nonlinearity(Effect):
 class ShotNoise(Effect):
     """Shot noise of the collected electrons (photo- and thermal): σ² = g·A·μ.
 
-    μ is the signal above the black level and A the frame's analog gain (:attr:`FrameContext.amplification`):
+    μ is the charge signal — above the black level and the electronic offsets
+    (:attr:`FrameContext.electronic_offset`) — and A the frame's analog gain (:attr:`FrameContext.amplification`):
     N electrons read K·A·N DN with variance (K·A)²·N = K·A·μ, so ``g`` is the conversion gain K at the
     reference gain."""
 
@@ -403,7 +412,10 @@ class ShotNoise(Effect):
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         if self.g > 0:
-            sd = np.sqrt(np.float32(self.g * ctx.amplification) * np.maximum(signal, 0.0))
+            offset = ctx.electronic_offset
+            charge = signal - (per_pixel(np.asarray(offset, signal.dtype), signal) if np.ndim(offset) else
+                               np.float32(offset))
+            sd = np.sqrt(np.float32(self.g * ctx.amplification) * np.maximum(charge, 0.0))
             signal += sd * rng.standard_normal(signal.shape, dtype=np.float32)
         return signal
 

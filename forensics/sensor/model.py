@@ -121,6 +121,26 @@ class FrameContext:
         return out
 
     @property
+    def electronic_offset(self) -> np.ndarray | float:
+        """The part of the mean signal at the ``NOISE`` stage that is not charge: electronic offsets added before
+        it (:meth:`Effect.electronic` — an offset at zero exposure, a per-pixel offset non-uniformity), times
+        the analog gain after them.  A number or an ``(H, W)`` array.  Shot noise does not act on it (EMVA 1288:
+        the dark offset μ_d0 and the DSNU carry no Poisson noise; the photo- and thermal electrons do)."""
+        out: np.ndarray | float = 0.0
+        amp = None
+        for effect in self.device.model.effects:
+            if effect.stage >= Stage.NOISE:
+                break
+            part = effect.electronic(self)
+            if np.ndim(part) == 0 and float(part) == 0.0:
+                continue
+            if effect.stage < Stage.AMPLIFY:
+                amp = self.amplification if amp is None else amp
+                part = part * amp
+            out = out + part
+        return out
+
+    @property
     def readout_offset(self) -> float:
         """What the ``READOUT`` effects add to a zero signal (the black level): the output of a pixel that
         collected nothing.  Noise laws act on the signal before it (:meth:`Effect.variance`)."""
@@ -253,9 +273,16 @@ class Effect:
         return []
 
     def variance(self, mean: np.ndarray, ctx: FrameContext) -> np.ndarray | float:
-        """Temporal variance (output DN²) this effect adds to a pixel whose mean signal at the ``NOISE`` stage is
-        ``mean`` — the output mean less the readout offset (:attr:`FrameContext.readout_offset`) — in the
-        frame ``ctx`` (``NOISE`` effects). Default 0."""
+        """Temporal variance (output DN²) this effect adds to a pixel whose mean charge signal at the ``NOISE``
+        stage is ``mean`` — the output mean less the readout offset (:attr:`FrameContext.readout_offset`) and
+        the electronic offsets (:attr:`FrameContext.electronic_offset`) — in the frame ``ctx`` (``NOISE``
+        effects). Default 0."""
+        return 0.0
+
+    def electronic(self, ctx: FrameContext) -> np.ndarray | float:
+        """What this effect adds to the signal that is not charge (an electronic offset: amplified by a later
+        analog gain, free of shot noise), in the signal's units at its stage — a number or ``(H, W)``.
+        Default 0."""
         return 0.0
 
     def amplification(self, ctx: FrameContext) -> float:
