@@ -33,7 +33,6 @@ def scaled_pinv(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     in float32 patterns, the cancellation is noise in every later prediction.  The pseudo-inverse gives the
     minimum-norm split, and the prediction is the same.
     """
-    k = A.shape[-1]
     diag = np.einsum("...ii->...i", A)
     dead = dead_columns(A)
     scale = np.sqrt(np.where(dead, 1.0, diag))
