@@ -124,11 +124,12 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
     fill_b = np.stack([np.where(defect_mask[r], sb[r][1], 0.0) for r in range(len(rgroups))])
     refill_ops = {e: kernel_scatter(m != NORMAL, KERNEL) for e, m in enumerate(epoch_classes)}
     rep = [g.index for g in rgroups]
-    noise = noise_floor(meas, rep, usable, classes, rgroups)
+    scene = 0.5 * (np.stack([x[0] for x in sa]) + np.stack([x[0] for x in sb]))
+    noise = noise_floor(meas, rep, usable, classes, rgroups, typical_levels(meas, rep, rgroups, usable, classes,
+                                                                            scene))
     na = meas.n_a[:, None, None].astype(float)
     var_a = noise.floor * (1.0 + np.where(uses_scene(classes, rgroups), KERNEL_VAR, 0.0)) / na
     weight = np.where(usable, 1.0 / var_a, 0.0)
-    scene = 0.5 * (np.stack([x[0] for x in sa]) + np.stack([x[0] for x in sb]))
     bins = variance_bins(meas, rgroups, usable, classes, scene=scene)
     return PixelData(catalogue, classes, defect_mask, np.stack([x[0] for x in sa]), np.stack([x[0] for x in sb]),
                      fill_a, fill_b, refill_ops, noise, var_a, weight, bins)
@@ -171,6 +172,18 @@ def variance_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray,
     return a, b
 
 
+def typical_levels(meas: Measurements, rep: list[int], rgroups: Sequence[Group], usable: np.ndarray,
+                   classes: np.ndarray, scene: np.ndarray) -> np.ndarray:
+    """Per (condition, pixel), a level free of the pixel's own noise: the neighbours' scene estimate, and in a
+    dark frame the mean of its usable normal pixels (there the levels spread by offsets without shot noise)."""
+    out = np.array(scene, float, copy=True)
+    for r, d in enumerate(dark_groups(rgroups)):
+        if d:
+            m = usable[r] & (classes[r] == NORMAL)
+            out[r] = float(meas.mean_all[rep[r]][m].mean()) if m.any() else float(np.median(meas.mean_all[rep[r]]))
+    return out
+
+
 def uses_scene(classes: np.ndarray, rgroups: Sequence[Group]) -> np.ndarray:
     """Per (condition, pixel): whether the prediction uses the scene estimate (not for stuck pixels, whose
     reading is their own, nor in frames known to be dark, whose light is zero)."""
@@ -178,9 +191,10 @@ def uses_scene(classes: np.ndarray, rgroups: Sequence[Group]) -> np.ndarray:
 
 
 def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes: np.ndarray,
-                rgroups: Sequence[Group] | None = None) -> NoiseFloor:
+                rgroups: Sequence[Group] | None = None, typical_level: np.ndarray | None = None) -> NoiseFloor:
     """The pixel channel's noise floor from the repeats of normal pixels; measured, never modelled
-    (see :class:`NoiseFloor`).
+    (see :class:`NoiseFloor`).  ``typical_level`` (R, H, W): where to read the laws for normal pixels — a
+    level free of the pixel's own noise (default: the pixel's own mean).
 
     Stuck pixels and dark frames keep the law of the pixels' own temporal variance; a stuck pixel that never
     changed (no noise downstream of it) has the quantisation variance only.
@@ -190,22 +204,15 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
     var = meas.var_all[rep]
     normal = usable & (classes == NORMAL)
     # Slopes of the variance laws are pooled over the conditions of one analog gain (ISO): the slope is the
-    # conversion gain, which the ISO setting multiplies; across light levels it is well determined.  Within a
-    # dark frame the levels spread by offsets that carry no shot noise (DSNU): its law has its own slope
-    # (≈ 0) — the gain's slope made low dark pixels look noiseless, weighted them 10–100× and biased the
-    # dark levels by ~0.5 DN (emva1288 series).
+    # conversion gain, which the ISO setting multiplies; across light levels it is well determined.
     gain_pools = [g.iso for g in rgroups]
-    dark = dark_groups(rgroups)
+    # Where a normal pixel's law is read: not at its own mean, whose noise its residual shares — a weight
+    # falling with the pixel's own noisy level biases the weighted fit by −b/2 DN (b the law's slope; ~0.5 DN
+    # on the dark frames of the emva1288 series) — but at a level free of it (``typical_level``).
+    at = level if typical_level is None else np.where(classes == NORMAL, typical_level, level)
     # the pixel's own variance: stuck pixels and dark frames (predictions that do not use the neighbours)
     a_grey, b_grey = variance_law(level, var, normal, gain_pools)
-    own = np.maximum(a_grey[:, None, None] + b_grey[:, None, None] * level, QUANT_VAR)
-    if dark.any():
-        a_dark, b_dark = variance_law(level, var, normal, [("dark", r) if d else g for r, (d, g) in
-                                                           enumerate(zip(dark, gain_pools))])
-        own_dark = np.maximum(a_dark[:, None, None] + b_dark[:, None, None] * level, QUANT_VAR)
-        # normal pixels only: a hot pixel's excess is charge (dark current) with its shot noise, which the
-        # gain's law describes
-        own = np.where(dark[:, None, None] & (classes == NORMAL), own_dark, own)
+    own = np.maximum(a_grey[:, None, None] + b_grey[:, None, None] * at, QUANT_VAR)
     constant = np.all(var == 0, axis=0)[None] & (classes == STK)  # noiseless stuck pixels: only quantisation remains
     own = np.where(constant, QUANT_VAR, own)
     own_raw = np.maximum(var, QUANT_VAR * constant)
@@ -215,7 +222,7 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
     resid = meas.var_resid[rep] if meas.var_resid is not None else var * (1.0 + KERNEL_VAR)
     a, b = variance_law(level, resid, normal & scene, gain_pools)
     factor = 1.0 + KERNEL_VAR
-    smooth = np.maximum(a[:, None, None] + b[:, None, None] * level, QUANT_VAR * factor) / factor
+    smooth = np.maximum(a[:, None, None] + b[:, None, None] * at, QUANT_VAR * factor) / factor
     floor = np.where(scene, smooth, own)
     raw = np.where(scene, np.maximum(resid, QUANT_VAR * factor) / factor, own_raw)
     return NoiseFloor(a, b, floor, raw, a_grey, b_grey)
