@@ -82,9 +82,10 @@ def identify(information: np.ndarray, names: Sequence[str], values: Sequence[flo
 
 
 def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], information: np.ndarray,
-              converged: bool) -> list[ParamEstimate]:
+              converged: bool, extra_cov: np.ndarray | None = None) -> list[ParamEstimate]:
     """Estimates of the ``free`` parameters ``(effect index, name)`` with standard errors from their information
-    matrix; parameters the data do not determine are reported as not identifiable (:mod:`.identify`)."""
+    matrix (plus ``extra_cov``, variance from outside the fit's own noise); parameters the data do not
+    determine are reported as not identifiable (:mod:`.identify`)."""
     names = [f"{effects[j].key}.{n}" for j, n in free]
     ident = identify(information, names, [float(getattr(effects[j], n)) for j, n in free])
     out = []
@@ -94,7 +95,10 @@ def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], inform
         note = ident.why[i] if not ok else ""
         if not converged:
             note = f"{names[i]} still moving when the fit stopped"
-        out.append(ParamEstimate(effects[j].key, n, value, ident.se(i) if ok and converged else None,
+        se = ident.se(i)
+        if se is not None and extra_cov is not None and np.isfinite(extra_cov[i, i]):
+            se = float(np.sqrt(se**2 + max(float(extra_cov[i, i]), 0.0)))
+        out.append(ParamEstimate(effects[j].key, n, value, se if ok and converged else None,
                                  unit(effects[j], n), identifiable=ok, converged=converged, note=note))
     return out
 

@@ -81,7 +81,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     chi_prev = np.inf
     X_local: list[np.ndarray] = []
     local_var = None
-    H = None
+    H = cross = None
     converged = False
     for cycle in range(max_cycles):
         raw = predict(dev, clip=False)  # derivatives ignore the clipping (clipped values are censored)
@@ -101,8 +101,8 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             mu = predict(dev)
         # -- global parameters: profiled Gauss–Newton with step halving
         if glob:
-            effects, H = _global_step(predict, refit_local, device, effects, glob, pats, local, X_local, y, w, mu,
-                                      centred)
+            effects, H, cross = _global_step(predict, refit_local, device, effects, glob, pats, local, X_local, y,
+                                             w, mu, centred)
             dev = on_device(device, effects)
         mu = predict(dev)
         chi = float(np.sum(w * (y - mu) ** 2))
@@ -116,16 +116,45 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         _, local_var = solve_local(w, X_local, y - mu, centred)
     if glob:
-        params += estimates(effects, glob, H, converged and np.isfinite(chi))
+        extra = _pattern_mean_covariance(H, cross, local, centred, local_var)
+        params += estimates(effects, glob, H, converged and np.isfinite(chi), extra)
     return PixelFit(effects, mu, X_local, local, local_var)
+
+
+def _pattern_mean_covariance(H: np.ndarray | None, cross: np.ndarray | None, local: list, centred: list[bool],
+                             local_var: np.ndarray | None) -> np.ndarray | None:
+    """Covariance the global parameters take from the random-effect patterns' own means.
+
+    The fit holds each random-effect pattern's mean at 0 (its definition), but the device's pattern is one
+    draw whose mean is off 0 by ~τ/√N; a global parameter collinear with that mean (a dark offset with the
+    DSNU's) moves with it: Cov += H⁻¹·C·diag(τ²/N)·Cᵀ·H⁻¹, C the cross information of the parameters and the
+    patterns' common modes.  Without it the dark offset's 95 % interval covered 86 % of simulated cameras.
+    """
+    if H is None or cross is None or local_var is None:
+        return None
+    cols = [j for j, c in enumerate(centred) if c]
+    spread = np.zeros(len(cols))
+    for n, j in enumerate(cols):
+        p = local[j][1]
+        m = p.blocks >= 0
+        vals = p.values[p.blocks[m]].astype(float)
+        var = local_var[j][m]
+        ok = np.isfinite(var)
+        if ok.sum() > 1:
+            tau2 = max(float(np.mean(vals[ok] ** 2) - np.mean(var[ok])), 0.0)
+            spread[n] = tau2 / ok.sum()
+    hinv = np.linalg.pinv(H)
+    return hinv @ cross @ np.diag(spread) @ cross.T @ hinv
 
 
 def _global_step(predict, refit_local, device: Device, effects: list[Effect], glob: list[tuple[int, str]],
                  pats: list[tuple[int, Pattern]], local: list, X_local: list[np.ndarray], y: np.ndarray,
-                 w: np.ndarray, mu: np.ndarray, centred: list[bool]) -> tuple[list[Effect], np.ndarray]:
+                 w: np.ndarray, mu: np.ndarray,
+                 centred: list[bool]) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
     """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
-    does not increase (at most 8 times; else the old values stay).  Returns the effects and the Gauss–Newton
-    matrix (for standard errors)."""
+    does not increase (at most 8 times; else the old values stay).  Returns the effects, the Gauss–Newton
+    matrix (for standard errors) and the parameters' cross information with the random-effect patterns'
+    common modes (None without such patterns)."""
     dev = on_device(device, effects)
     r = y - mu
     raw = predict(dev, clip=False)
@@ -141,6 +170,9 @@ def _global_step(predict, refit_local, device: Device, effects: list[Effect], gl
         J.append(proj.project((predict(moved, clip=False) - raw) / d * np.sqrt(w)))
     zr = proj.project(r * np.sqrt(w))
     H = np.array([[np.sum(a * b) for b in J] for a in J])
+    # cross information with the random-effect patterns' common modes (a uniform shift of all their values)
+    modes = [proj.project(x * np.sqrt(w)) for x, c in zip(X_local, centred) if c]
+    cross = np.array([[np.sum(a * m) for m in modes] for a in J]) if modes else None
     g = np.array([np.sum(a * zr) for a in J])
     old = [getattr(effects[i], n) for i, n in glob]
     lower = np.array([effects[i].bounds(n)[0] for i, n in glob])
@@ -158,8 +190,8 @@ def _global_step(predict, refit_local, device: Device, effects: list[Effect], gl
             mu_new = refit_local(tdev, X_local, mu_new)
         chi_new = float(np.sum(w * (y - mu_new) ** 2))
         if chi_new <= chi_old:
-            return trial, H
+            return trial, H, cross
         for (_, p), v in zip(pats, old_vals):
             p.values[...] = v
         step = step / 2
-    return effects, H
+    return effects, H, cross
