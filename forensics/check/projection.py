@@ -91,13 +91,17 @@ class PixelProjector:
             return
         self.inv = scaled_pinv(normal_matrix(columns))[0]
 
-    def project(self, x: np.ndarray) -> np.ndarray:
+    def project(self, x: np.ndarray, keep_common: bool = True) -> np.ndarray:
+        """``x`` off the nuisance directions; ``keep_common=False`` projects off the centred columns' common
+        mode too — for a candidate random-effect pattern, whose own mean is 0 as well: its common mode is not
+        part of its signature (kept, it read as a pattern of no size, and dsnu looked infinitely strong on a
+        flat of one light level, where it is prnu's column)."""
         if self.inv is None:
             return x
         k = len(self.cols)
         b = np.stack([np.einsum("r...,r...->...", c, x) for c in self.cols], axis=-1)
         coef = np.einsum("...ij,...j->...i", self.inv, b)
-        shift = common_mode(self.inv, coef, self.centred)
+        shift = common_mode(self.inv, coef, self.centred) if keep_common else None
         if shift is not None:
             coef += shift
         out = x.copy()

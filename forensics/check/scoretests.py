@@ -138,7 +138,8 @@ def score_pixel(ev: Evidence, fitted: FittedModel, sigs: list[Signature], z: np.
         raw_norm = float(np.sum(raw**2))
         if raw_norm <= 0 or float(np.max(np.abs(raw))) < 1e-4:  # no signature (up to rounding) in these data
             continue
-        xp = fitted.projector.project(raw) if s.pixel_local or s.blocks is None else raw
+        xp = (fitted.projector.project(raw, keep_common=not s.random_effect) if s.pixel_local or s.blocks is None
+              else raw)
         xp = np.where(keep, xp, 0.0)
         if s.blocks is not None:
             if zb is None:

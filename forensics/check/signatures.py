@@ -37,6 +37,7 @@ class Signature:
     x: np.ndarray
     blocks: np.ndarray | None = None
     pixel_local: bool = False
+    random_effect: bool = False  #: a zero-mean pattern (:attr:`~forensics.sensor.model.Pattern.random_effect`)
 
 
 def _names(effect: Effect) -> list[str]:
@@ -81,7 +82,8 @@ class SignatureContext(EffectQuestions):
             pat.values[used] += delta
             x = (self._predict(dev) - base) / delta * (pat.blocks >= 0)[None]
             pat.values[used] -= delta
-            sigs.append(Signature("pixel", f"{effect.key}.{pat.name}", x, pat.blocks, pat.pixel_local))
+            sigs.append(Signature("pixel", f"{effect.key}.{pat.name}", x, pat.blocks, pat.pixel_local,
+                                  pat.random_effect))
         for name in _names(probe):
             value = getattr(probe, name)
             delta = 1e-3 * (1.0 + abs(value))
