@@ -229,11 +229,6 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
     return arr, expected, [(arr[j].key, n) for j, n in free], jac
 
 
-def _default(effect: Effect, name: str) -> float:
-    """The declared default of a parameter (its ``param(default, …)``)."""
-    return float(next(f.default for f in dataclasses.fields(effect) if f.name == name))
-
-
 def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], local: list,
                       local_var: np.ndarray | None) -> tuple[list[Effect], list[PatternEstimate]]:
     """Each fixed pattern's size (rms of its fitted values less their estimation noise), and the effects with
@@ -381,7 +376,8 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
         moved = list(noise)
         for j, n in free:
             if getattr(noise[j], n) == noise[j].null_values().get(n, None):
-                moved = with_param(moved, j, n, _default(noise[j], n))
+                moved = with_param(moved, j, n, next(p["default"] for p in noise[j].parameter_info()
+                                                     if p["name"] == n))
         if any(a is not b for a, b in zip(moved, noise)):
             starts.append(moved)
         fits = [descend(start) for start in starts]

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from forensics.check.params import unit
+from forensics.check.projection import scaled_pinv
 from forensics.check.result import ParamEstimate
 from forensics.sensor.model import Effect
 
@@ -57,7 +58,7 @@ def identify(information: np.ndarray, names: Sequence[str], values: Sequence[flo
     H = np.asarray(information, float)
     k = len(names)
     why = [""] * k
-    ok = informative(H, None if values is None else np.asarray(values, float)) if k else np.ones(0, bool)
+    ok = informative(H, None if values is None else np.asarray(values, float))
     diag = np.diag(H) if k else np.zeros(0)
     for i in range(k):
         if not ok[i]:
@@ -120,7 +121,7 @@ def bounded_step(information: np.ndarray, gradient: np.ndarray, values: np.ndarr
     v = np.asarray(values, float)
     k = len(g)
     step = np.zeros(k)
-    held = ~informative(H, v) if k else np.zeros(0, bool)  # nothing to say how far: stay
+    held = ~informative(H, v)  # nothing to say how far: stay
     for _ in range(k + 1):
         free = np.flatnonzero(~held)
         rhs = g[free] - H[np.ix_(free, np.flatnonzero(held))] @ step[held]
@@ -134,13 +135,6 @@ def bounded_step(information: np.ndarray, gradient: np.ndarray, values: np.ndarr
 
 
 def _scaled_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    if H.size == 0:
-        return np.zeros(0)
     diag = np.diag(H)
-    live = np.isfinite(diag) & (diag > 0)
-    scale = np.sqrt(np.where(live, diag, 1.0))
-    C = np.where(np.outer(live, live), H / np.outer(scale, scale), 0.0)
-    lam, vec = np.linalg.eigh(C)
-    keep = lam > NULL_DIRECTION * max(float(lam.max()), 1e-300)
-    inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
-    return np.where(live, inv @ np.where(live, g / scale, 0.0), 0.0) / scale
+    inv, _ = scaled_pinv(H, NULL_DIRECTION, ~(np.isfinite(diag) & (diag > 0)))
+    return inv @ g

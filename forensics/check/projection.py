@@ -24,9 +24,11 @@ def normal_matrix(X: list[np.ndarray], weight: np.ndarray | None = None) -> np.n
 LOCAL_NULL = 1e-7
 
 
-def scaled_pinv(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def scaled_pinv(A: np.ndarray, null: float = LOCAL_NULL,
+                dead: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel, the pseudo-inverse of a normal matrix ``A`` (…, k, k), computed on its unit-diagonal scaling
-    with null directions (:data:`LOCAL_NULL`) dropped, and which columns it leaves undetermined (…, k).
+    with null directions (eigenvalues below ``null`` times the largest) dropped, and which columns it leaves
+    undetermined (…, k).  ``dead``: columns without information (default :func:`dead_columns`).
 
     Why not ``inv(A + ridge)``: where two columns are collinear at a pixel (a partially stuck pixel's own
     offset and the per-pixel DSNU), the ridged inverse splits their common value into ±10⁵ that cancel; kept
@@ -34,13 +36,13 @@ def scaled_pinv(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     minimum-norm split, and the prediction is the same.
     """
     diag = np.einsum("...ii->...i", A)
-    dead = dead_columns(A)
+    dead = dead_columns(A) if dead is None else dead
     scale = np.sqrt(np.where(dead, 1.0, diag))
     S = A / (scale[..., :, None] * scale[..., None, :])
     live = ~dead
     S = np.where(live[..., :, None] & live[..., None, :], S, 0.0)
     lam, vec = np.linalg.eigh(S)
-    keep = lam > LOCAL_NULL * np.maximum(lam[..., -1:], 1e-300)
+    keep = lam > null * np.maximum(lam[..., -1:], 1e-300)
     inv_lam = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     inv = np.einsum("...ik,...k,...jk->...ij", vec, inv_lam, vec)
     inv /= scale[..., :, None] * scale[..., None, :]

@@ -70,3 +70,29 @@ def test_black_level_from_the_manifest(tmp_path):
                    force=True)
     with pytest.raises(InputError, match="black_level"):
         metadata_black_level(tmp_path)
+
+
+def test_bounded_step_holds_a_parameter_at_its_bound_and_solves_the_others():
+    from forensics.check.identify import bounded_step
+
+    H = np.array([[2.0, 0.5], [0.5, 1.0]])
+    g = np.array([-3.0, 1.0])  # the unconstrained step takes the first below its bound 0
+    step = bounded_step(H, g, np.zeros(2), np.array([0.0, -np.inf]), np.array([np.inf, np.inf]))
+    assert step[0] == 0.0
+    assert step[1] == pytest.approx(g[1] / H[1, 1])  # the other solved with the first held
+
+
+def test_bounded_step_does_not_move_along_a_direction_the_data_do_not_determine():
+    """Two collinear columns (b = 2a) and one the data carry no information on: the step reproduces the
+    least-squares fit without the ±10³ split an unscaled solve of the near-singular system makes."""
+    from forensics.check.identify import bounded_step
+
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal(50)
+    J = np.stack([a, 2 * a * (1 + 1e-13 * rng.standard_normal(50)), rng.standard_normal(50), 1e-9 * a], axis=1)
+    r = rng.standard_normal(50)
+    step = bounded_step(J.T @ J, J.T @ r, np.zeros(4), np.full(4, -np.inf), np.full(4, np.inf))
+    assert step[3] == 0.0 and np.all(np.abs(step) < 10)
+    # the fit in the span the data determine: a and the third column (b's 1e-13 departure from 2a is rounding)
+    ls = np.linalg.lstsq(J[:, [0, 2]], r, rcond=None)[0]
+    np.testing.assert_allclose(J @ step, J[:, [0, 2]] @ ls, atol=1e-8)
