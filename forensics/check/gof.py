@@ -12,7 +12,7 @@ import numpy as np
 from scipy import stats
 
 import forensics.stats.spatial as sp
-from forensics.check.classes import CLASSES, PART, QUANT_VAR, STK
+from forensics.check.classes import CLASSES, NORMAL, PART, QUANT_VAR, STK, dark_groups
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
 from forensics.check.result import CheckRow
@@ -53,12 +53,14 @@ def pixel_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tupl
     lev = fitted.projector.leverage()
     keep = ev.usable & (px.classes != STK)
     var1 = np.where(keep, 1.0 - (lev if lev is not None else 0.0), 0.0)
-    # (a) mean residual of the defect classes per condition (normal pixels' smooth misfit is absorbed by the
-    # scene estimate by construction; their pixel-to-pixel misfit is test (b))
+    # (a) mean residual per condition of the partially stuck pixels, and of the normal pixels in frames known
+    # to be dark (elsewhere normal pixels' smooth misfit is absorbed by the scene estimate by construction; in a
+    # dark frame nothing absorbs it: a dark signal the model lacks shows up here); pixel-to-pixel misfit is (b)
+    dark = dark_groups(ev.rgroups)
     chi = 0.0
     nb = 0
     for r in range(len(ev.rep)):
-        for k in (PART,):
+        for k in ((PART, NORMAL) if dark[r] else (PART,)):
             m = keep[r] & (px.classes[r] == k)
             if m.sum() < 3:
                 continue
@@ -69,7 +71,7 @@ def pixel_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tupl
             nb += 1
     p_a = float(stats.chi2.sf(chi, nb)) if nb else 1.0
     if nb:
-        checks.append(CheckRow("pixel: mean residual of partially stuck pixels per condition, χ²/df", chi / nb, 1.0,
+        checks.append(CheckRow("pixel: mean residual per condition (partially stuck; normal in dark frames), χ²/df", chi / nb, 1.0,
                                (chi - nb) / math.sqrt(2 * nb)))
     # (b) per-pixel consistency: component along the constant, against the within-pixel scatter
     ones = fitted.projector.project(np.where(keep, sw, 0.0))

@@ -150,7 +150,8 @@ def _data_summary(ev: Evidence, fitted: FittedModel) -> dict[str, Any]:
             "light_levels": light_levels(ev, px),
             "defects": {"partial": int(defects.counts[PARTIAL][-1]), "stuck": int(defects.counts[STUCK][-1]),
                         "threshold_dn": float(defects.threshold[PARTIAL])},
-            "classes": {name: int(np.sum(px.classes[-1][meas.interior] == k)) for k, name in enumerate(CLASSES)}}
+            "classes": {name: int(np.sum(px.classes[-1][meas.interior] == k)) for k, name in enumerate(CLASSES)},
+            "held_out_means": {name: int(np.sum(ev.usable & (px.classes == k))) for k, name in enumerate(CLASSES)}}
 
 
 def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect], rng: RngLike, n_sim: int,

@@ -29,10 +29,12 @@ from forensics.check.run import base_model, prepare, resolve_effects, run_check
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import Effect
 
-#: An error channel "falls beyond its noise" when it drops by more than this fraction of its value
-#: (pixel: in units of the noise floor its sampling spread over ~10⁴ pixel means is well under 1 %;
-#: variance and growth are coarser, binned or counted, statistics).
+#: An error channel "falls beyond its noise" when it drops by more than this fraction of its value.  The pixel
+#: channel's is computed from the number n of held-out pixel means (:func:`pixel_error_tolerance`); this value
+#: is used only when n is unknown.  Variance and growth are coarser, binned or counted, statistics.
 ERROR_TOL: dict[str, float] = {"pixel": 0.02, "variance": 0.10, "growth": 0.10}
+#: standard errors an error must fall by (one-sided, ≈ 0.1 % by chance)
+ERROR_SIGMAS = 3.0
 #: A goodness of fit "recovers" when a p-value below :data:`GOF_FAIL` rises by at least this factor (the
 #: spatial channel's Monte-Carlo p cannot go below 1/(n_sim + 1) = 0.005, so a recovery reads 0.005 → ≥ 0.05).
 GOF_RISE = 10.0
@@ -127,11 +129,28 @@ def _finite(v: Any) -> bool:
     return isinstance(v, (int, float)) and math.isfinite(v)
 
 
+def pixel_error_tolerance(n: int | None) -> float:
+    """Relative fall of a held-out pixel error over ``n`` pixel means that is beyond its sampling noise.
+
+    Under the model the error² is a mean of n squared z-scores, relative SD √(2/n), so the error's own relative
+    SD is 1/√(2n); a fall of :data:`ERROR_SIGMAS` of those is kept.  The two errors compared are scored on the
+    same held-out means, so their difference is less noisy than this: the rule is conservative.
+    """
+    if not n:
+        return ERROR_TOL["pixel"]
+    return ERROR_SIGMAS / math.sqrt(2.0 * n)
+
+
 def improvement(before: CheckResult, after: CheckResult) -> str | None:
     """What improved from ``before`` to ``after`` (a short phrase), or None if nothing did beyond its noise."""
-    pairs = [(f"error.{key}", before.error.get(key), after.error.get(key), tol) for key, tol in ERROR_TOL.items()]
-    pairs += [(f"error.classes.{cls}", b, (after.error.get("classes") or {}).get(cls), ERROR_TOL["pixel"])
-              for cls, b in (before.error.get("classes") or {}).items()]  # error.pixel is the worst class's
+    n_means = (after.data or {}).get("held_out_means") or {}
+    classes = before.error.get("classes") or {}
+    worst = max((c for c in classes if _finite(classes[c])), key=lambda c: classes[c], default=None)
+    pairs = [(f"error.{key}", before.error.get(key), after.error.get(key),
+              pixel_error_tolerance(n_means.get(worst)) if key == "pixel" else tol) for key, tol in ERROR_TOL.items()]
+    pairs += [(f"error.classes.{cls}", b, (after.error.get("classes") or {}).get(cls),
+               pixel_error_tolerance(n_means.get(cls)))
+              for cls, b in classes.items()]  # error.pixel is the worst class's
     for label, b, a, tol in pairs:
         if _finite(b) and _finite(a) and a < (1.0 - tol) * b:
             return f"{label} {b:.3g} → {a:.3g}"

@@ -67,6 +67,28 @@ def test_base_check_names_the_dark_signal_first(tmp_path):
     assert {"shot_noise", "dsnu"} <= set(r.flagged)
 
 
+def test_a_dark_signal_the_model_lacks_fails_the_pixel_gof(tmp_path):
+    """Dark frames are predicted as zero light, so no scene estimate absorbs their misfit: with the dark signal's
+    mean but not ISO's gain on it the held-out error is far above 1, and the in-sample gof must say so too."""
+    data = make_emva_series(tmp_path / "series", rng=7, design=DESIGN)
+    r = check(data, add=["dark_current"], rng=0, baseline=False)
+    assert r.error["pixel"] > 1.3
+    assert r.gof["pixel"] < 1e-3
+
+
+def test_auto_adds_every_effect_the_simulator_has(tmp_path):
+    """Forward selection from the base model ends with the simulator's effects (PRNU included: its fall of the
+    held-out error is small next to the noise floor, but far beyond the error's sampling noise) and nothing
+    flagged."""
+    from forensics.check import check_auto
+
+    data = make_emva_series(tmp_path / "series", rng=3, design=DESIGN)
+    sel = check_auto(data, rng=0, max_steps=8)
+    assert sel.stopped == "nothing flagged", [(s.label, s.flagged) for s in sel.steps]
+    assert {"dark_current", "gain", "shot_noise", "dsnu", "prnu"} <= set(sel.added), sel.added
+    assert sel.result.error["pixel"] < 1.05
+
+
 def emva1288_results(folder, iso: float, temperature: float):
     """emva1288's own analysis (``Results1288``) of the frames at one ISO and temperature: the standard's
     photon-transfer series — per exposure time a dark pair and one bright pair (the brighter flat), the spatial

@@ -108,6 +108,21 @@ def test_a_recovering_gof_counts_as_improvement():
     assert sel_mod.improvement(before, _result([], 0.995, [], gof_pixel=2e-6)) is None
 
 
+def test_the_pixel_errors_tolerance_is_its_sampling_noise():
+    """3 SE of an error over n pixel means (relative SD 1/√(2n)): 1 % at n = 45,000; a fall of 0.7 % is kept at
+    n = 110,000 (EMVA-sized data) and not at n = 10,000."""
+    assert sel_mod.pixel_error_tolerance(45_000) == pytest.approx(0.01, rel=1e-3)
+    assert sel_mod.pixel_error_tolerance(None) == sel_mod.ERROR_TOL["pixel"]
+    before = _result([], 1.017, ["prnu"])
+    after = _result([], 1.010, [])
+    before.error["classes"] = {"normal": 1.017}
+    after.error["classes"] = {"normal": 1.010}
+    after.data = {"held_out_means": {"normal": 110_000}}
+    assert sel_mod.improvement(before, after) == "error.pixel 1.02 → 1.01"
+    after.data = {"held_out_means": {"normal": 10_000}}
+    assert sel_mod.improvement(before, after) is None
+
+
 # ------------------------------------------------------------------------------------ several hidden effects
 def test_the_generator_hides_several_effects():
     assert [e.key for e in hidden_effects(PAIR)] == PAIR and hidden_effects("none") == []
