@@ -188,7 +188,7 @@ def format_check(result: Any) -> str:
              f"{d['light_levels']} light levels",
              f"Model: {' + '.join(result.effects)}", "", "Fitted parameters"]
     for p in result.params:
-        if not (p.identifiable and p.converged):
+        if not (p.identifiable and p.converged) or p.bound:
             lines.append(f"  {p.label:<32} {p.summary()}")
             continue
         se = "" if p.se is None else f" ± {_g(p.se)}"

@@ -99,9 +99,24 @@ def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], inform
         se = ident.se(i)
         if se is not None and extra_cov is not None and np.isfinite(extra_cov[i, i]):
             se = float(np.sqrt(se**2 + max(float(extra_cov[i, i]), 0.0)))
+        bound, limit = _at_bound(value, effects[j].bounds(n), se if ok and converged else None)
         out.append(ParamEstimate(effects[j].key, n, value, se if ok and converged else None,
-                                 unit(effects[j], n), identifiable=ok, converged=converged, note=note))
+                                 unit(effects[j], n), identifiable=ok, converged=converged, note=note,
+                                 bound=bound, limit=limit))
     return out
+
+
+#: one-sided 95 % point of the boundary likelihood-ratio mixture ½χ²₀ + ½χ²₁ (√2.71)
+ONE_SIDED_95 = 1.6449
+
+
+def _at_bound(value: float, bounds: tuple[float, float], se: float | None) -> tuple[str, float | None]:
+    """(``"lower"``/``"upper"``/``""``, one-sided 95 % limit) for a value resting on a bound.  The bounded
+    step puts a parameter exactly onto its bound (:func:`bounded_step`), so equality up to rounding is the test."""
+    for side, b, sign in (("lower", bounds[0], 1.0), ("upper", bounds[1], -1.0)):
+        if np.isfinite(b) and abs(value - b) <= 1e-9 * max(1.0, abs(b)):
+            return side, (None if se is None else b + sign * ONE_SIDED_95 * se)
+    return "", None
 
 
 def bounded_step(information: np.ndarray, gradient: np.ndarray, values: np.ndarray, lower: np.ndarray,

@@ -15,6 +15,10 @@ class ParamEstimate:
     ``identifiable`` False: the data carry no information on it or it trades off exactly against other
     parameters (``note`` says which); its value is then where the fit started and ``se`` is None.
     ``converged`` False: the fit did not settle; the value is not a result.
+    ``bound`` ``"lower"``/``"upper"``: the fit rests on that bound of the parameter (e.g. a noise σ at 0); a
+    symmetric interval would step outside the allowed range, so ``limit`` is the one-sided 95 % limit
+    (bound ± 1.645·SE: at a boundary the likelihood-ratio statistic is a 50:50 mixture of 0 and χ²₁, whose
+    95 % point is 1.645²).
     """
 
     effect: str
@@ -25,6 +29,8 @@ class ParamEstimate:
     identifiable: bool = True
     converged: bool = True
     note: str = ""
+    bound: str = ""
+    limit: float | None = None
 
     @property
     def label(self) -> str:
@@ -36,6 +42,9 @@ class ParamEstimate:
             return f"did not converge ({self.note})" if self.note else "did not converge"
         if not self.identifiable:
             return f"not identifiable from these data ({self.note})"
+        if self.bound and self.limit is not None:
+            side = "<" if self.bound == "lower" else ">"
+            return f"{self.value:.6g} {self.unit} (at its {self.bound} bound; {side} {self.limit:.4g} at 95 %)".replace("  ", " ")
         se = "" if self.se is None else f" ± {self.se:.4g}"
         return f"{self.value:.6g}{se} {self.unit}".rstrip()
 

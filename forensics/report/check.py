@@ -133,8 +133,8 @@ def _numbers(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult
     rep.table(header, rows)
     rep.heading("Fitted parameters")
     rep.table(["effect", "parameter", "value", "standard error", "unit"],
-              [[p.effect, p.name, p.value if p.identifiable and p.converged else p.summary(),
-                "—" if p.se is None else p.se, p.unit] for p in result.params]
+              [[p.effect, p.name, p.value if p.identifiable and p.converged and not p.bound else p.summary(),
+                "—" if p.se is None or p.bound else p.se, p.unit] for p in result.params]
               + [[p.effect, f"{p.name} (pattern, {p.blocks} blocks)", p.rms, "rms", p.hyper or ""]
                  for p in result.patterns]
               + [[p.effect, f"{p.name} (size in the frames, split halves)", p.size, p.size_se, ""]

@@ -96,3 +96,18 @@ def test_bounded_step_does_not_move_along_a_direction_the_data_do_not_determine(
     # the fit in the span the data determine: a and the third column (b's 1e-13 departure from 2a is rounding)
     ls = np.linalg.lstsq(J[:, [0, 2]], r, rcond=None)[0]
     np.testing.assert_allclose(J @ step, J[:, [0, 2]] @ ls, atol=1e-8)
+
+
+def test_a_parameter_on_its_bound_reports_a_one_sided_limit():
+    """A noise σ fitted to 0 (its lower bound) is not "0 ± s": its 95 % limit is one-sided, 0 + 1.645·SE (the
+    boundary likelihood ratio is ½χ²₀ + ½χ²₁); a parameter inside its range keeps its symmetric SE."""
+    from forensics.check.identify import ONE_SIDED_95, estimates
+    from forensics.sensor.effects import ReadNoise
+
+    H = np.array([[4.0]])
+    at_zero = estimates([ReadNoise(sigma=0.0)], [(0, "sigma")], H, True)[0]
+    assert at_zero.bound == "lower" and at_zero.se == pytest.approx(0.5)
+    assert at_zero.limit == pytest.approx(ONE_SIDED_95 * 0.5)
+    assert "at its lower bound" in at_zero.summary() and "< 0.822" in at_zero.summary()
+    inside = estimates([ReadNoise(sigma=2.0)], [(0, "sigma")], H, True)[0]
+    assert inside.bound == "" and inside.limit is None and inside.summary() == "2 ± 0.5 DN"
