@@ -19,6 +19,7 @@ import numpy as np
 
 from forensics.check.classes import QUANT_VAR
 from forensics.check.measurements import Measurements
+from forensics.check.scene import scene_estimate
 from forensics.defects.detection import robust_normal
 from forensics.defects.onsets import look_back
 from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
@@ -79,6 +80,12 @@ def epoch_offsets(meas: Measurements, gids: list[int], noise: float,
     varies = spread > 10.0 * noise
     slope = np.where(varies & (sxx > 0), sxy / np.where(sxx > 0, sxx, 1.0), 0.0)
     dhat = rbar + slope * (lev.min(0) - lbar)
+    if all(meas.groups[g].scenes and g in meas.repeated for g in gids):
+        # photographs: a scene's edge can stand out like an offset in one photograph, a defect's offset is in
+        # every one — so an offset counts only as far as both halves (different photographs) show it
+        for g in gids:
+            r = meas.repeated.index(g)
+            dhat = np.minimum(dhat, np.minimum(*(m - scene_estimate(m) for m in (meas.mean_a[r], meas.mean_b[r]))))
     flat = np.where(sxx > 0, slope, 0.0) < -0.5
     constant = ((meas.lo[gids].min(0) == meas.hi[gids].max(0)) | flat) & varies
     inside = dhat[meas.interior]

@@ -29,7 +29,7 @@ def class_errors(ev: Evidence, fitted: FittedModel) -> dict[str, float | None]:
     r = meas.mean_b - fitted.mu_b
     nb = meas.n_b[:, None, None].astype(float)
     scene_term = np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)
-    floor = px.raw_floor * (1.0 + scene_term) / nb
+    floor = px.raw_floor_b * (1.0 + scene_term) / nb
     out: dict[str, float | None] = {}
     r2 = r * r
     for k, name in enumerate(CLASSES):
@@ -106,7 +106,7 @@ def covariate_checks(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) 
     meas = ev.meas
     r = meas.mean_b - fitted.mu_b
     nb = meas.n_b[:, None, None].astype(float)
-    var_b = px.floor * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb
+    var_b = px.floor_b * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb
     z = r / np.sqrt(var_b)
     covs = {
         "scene level (DN)": px.scene_a,  # the other half's estimate: binning on its own would bias the residual

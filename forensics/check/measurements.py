@@ -23,7 +23,8 @@ import forensics.stats.spatial as sp
 from forensics._shared.arrays import grey_mean, infer_full_scale
 from forensics._shared.errors import InputError
 from forensics._shared.progress import Progress, no_progress
-from forensics.check.scene import KERNEL, SCENE_SIZE, scene_estimate
+from forensics.check.classes import QUANT_VAR
+from forensics.check.scene import KERNEL, KERNEL_VAR, SCENE_SIZE, scene_estimate
 from forensics.io.dataset import LIGHT_COLUMN, Dataset, open_dataset, split_epochs
 from forensics.io.stack import StackAccumulator
 
@@ -41,6 +42,8 @@ class Group:
     subject: str | None
     frames: list[int]
     light: str | None = None  #: the manifest's ``light`` column (a light level), when it has one
+    #: the frames are different scenes (ordinary photographs pooled per epoch, :func:`pool_scenes`), not repeats
+    scenes: bool = False
 
     @property
     def n(self) -> int:
@@ -62,6 +65,8 @@ class Group:
             parts.append(f"{self.temperature_c:g} °C")
         if self.light is not None:
             parts.append(f"light {self.light}")
+        if self.scenes:
+            parts.append(f"{self.n} photographs")
         return ", ".join(parts)
 
 
@@ -119,6 +124,10 @@ class Measurements:
     #: per condition, the temporal variance of each frame's residual from its own scene estimate
     var_resid: np.ndarray = field(default=None)  # type: ignore[assignment]
     traits: NoiseTraits | None = None
+    #: photographs (:func:`pool_scenes`): per repeated condition and half ``(R, 2, H, W)``, the mean over the
+    #: half's frames of the squared residual from each frame's own scene estimate (None without photographs).
+    #: Every photograph has its own texture, so the two halves' means have different noise floors.
+    half_ms: np.ndarray | None = None
 
     def drift(self, r: int) -> LevelDrift:
         """Frame-to-frame level changes of repeated condition ``r`` (index into :attr:`repeated`)."""
@@ -225,6 +234,61 @@ def group_frames(ds: Dataset, epoch: np.ndarray, epoch_times: np.ndarray) -> lis
             for j, (k, idx) in enumerate(sorted(keys.items(), key=lambda kv: (kv[0][0], kv[1][0])))]
 
 
+PHOTOGRAPHS_NOTE = ("the frames are ordinary photographs (different scenes, not repeats of one), pooled per "
+                     "epoch: the noise floor includes the scenes' fine texture, and the temporal variance and "
+                     "exposure-, ISO- and temperature-dependent effects cannot be tested from them")
+#: Two frames of one condition are different scenes when their block means differ, beyond an affine level
+#: change, by this many times what the frames' residual noise gives a block mean (for repeats the ratio is
+#: about 1–3 — more for spatially correlated noise —, for photographs of different scenes hundreds or more).
+SCENE_RATIO = 100.0
+
+
+def different_scenes(first_blocks: np.ndarray, second_blocks: np.ndarray, pixel_var: float,
+                     size: int = DRIFT_BLOCK) -> bool:
+    """Whether two frames show different scenes: the second's :func:`block_means` are not an affine function
+    of the first's (a level change, e.g. flicker or auto-exposure) within :data:`SCENE_RATIO` times the
+    variance their noise gives (``pixel_var``: the frames' residual variance per pixel, fixed pattern included,
+    which only makes the test slower to call frames different)."""
+    n = first_blocks.size
+    if n < 4:
+        return False
+    design = np.stack([first_blocks, np.ones(n)], 1)
+    coef, *_ = np.linalg.lstsq(design, second_blocks, rcond=None)
+    resid = second_blocks - design @ coef
+    ms = float(resid @ resid) / (n - 2)
+    noise = (1.0 + coef[0] ** 2) * max(pixel_var, QUANT_VAR) / size**2
+    return ms > SCENE_RATIO * noise
+
+
+def _common(values: Sequence[Any]) -> Any:
+    """The value all frames share, or None when they differ."""
+    first = values[0]
+    return first if all(v == first for v in values) else None
+
+
+def pool_scenes(ds: Dataset, groups: list[Group]) -> list[Group]:
+    """Ordinary photographs — no condition repeated — pooled into one group per epoch (``scenes`` True).
+
+    Every frame has its own scene, so frames of one condition cannot be repeats; but everything the sensor adds
+    that does not depend on the scene (a defect's offset, a stuck value, PRNU's gain on whatever light falls)
+    is the same in every photograph of an epoch.  The pixel channel predicts each half's mean from that half's
+    own scene estimate, so halves of different scenes are fitted and scored like repeats.  A field (exposure,
+    ISO, temperature) is kept where every pooled frame shares it, otherwise unknown (None): effects acting
+    through it cannot be tested and the check says so.
+    """
+    by_epoch: dict[int, list[int]] = {}
+    for g in groups:
+        by_epoch.setdefault(g.epoch, []).extend(g.frames)
+    out = []
+    for j, (epoch, frames) in enumerate(sorted(by_epoch.items())):
+        frames = sorted(frames)
+        first = next(g for g in groups if g.epoch == epoch)
+        fr = [ds.frames[i] for i in frames]
+        out.append(Group(j, epoch, first.time, _common([f.exposure_s for f in fr]), _common([f.iso for f in fr]),
+                         _common([f.temperature_c for f in fr]), None, frames, None, scenes=True))
+    return out
+
+
 def load_measurements(data: Dataset | str | Path, border: int | None = None, epoch_gap: float = 0.25,
                       region: Region | None = None, progress: Progress = no_progress) -> Measurements:
     """Read every frame once and reduce the dataset to per-condition statistics.
@@ -269,9 +333,13 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     groups = group_frames(ds, epoch, epoch_times)
     repeated = [g.index for g in groups if g.n >= 2]
     if not repeated:
-        raise InputError(f"{ds.root}: no condition has two or more frames; the noise floor is measured from repeated "
-                         "frames of one condition (same exposure_s, iso, temperature_c, subject, light and epoch): "
-                         "take at least 2 frames per condition")
+        groups = pool_scenes(ds, groups)
+        repeated = [g.index for g in groups if g.n >= 2]
+        if not repeated:
+            raise InputError(f"{ds.root}: no condition has two or more frames and no epoch two or more photographs; "
+                             "the noise floor is measured from repeated frames of one condition (same exposure_s, "
+                             "iso, temperature_c, subject, light and epoch): take at least 2 frames per condition")
+        notes.append(PHOTOGRAPHS_NOTE)
     shp = (crop[0].stop - crop[0].start, crop[1].stop - crop[1].start)
     G, R = len(groups), len(repeated)
     mean_all, var_all, lo, hi = (np.zeros((G, *shp)) for _ in range(4))
@@ -279,6 +347,7 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     n_a, n_b = np.zeros(R, int), np.zeros(R, int)
     rpos = {g: r for r, g in enumerate(repeated)}
     var_resid = np.zeros((G, *shp))
+    photo_ms: dict[int, np.ndarray] = {}  # repeated condition → (2, H, W) residual mean squares per half
     lag = Lag1()
     blocks: list[np.ndarray] = []
     dtype = None
@@ -288,6 +357,7 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
         previous = None
         frame_blocks = []
         stacked_dtype = None  # what this condition's stack accumulates (set by its first frame)
+        first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame's squared residual and block means
         for j, i in enumerate(g.frames):
             img = ds.frames[i].load()
             dtype = img.dtype if dtype is None else dtype
@@ -297,11 +367,25 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
             whole.add(stacked, name=ds.frames[i].file)
             halves[j % 2].add(stacked, name=ds.frames[i].file)
             if g.index in rpos:
-                resid.add(frame_residual(grey), name=ds.frames[i].file)
-                frame_blocks.append(block_means(grey))
-                if previous is not None:
-                    lag.add(previous, grey)
-                previous = grey
+                res = frame_residual(grey)
+                resid.add(res, name=ds.frames[i].file)
+                if j == 0:
+                    first = ((res * res).astype(np.float32), block_means(grey))
+                elif j == 1 and not g.scenes and different_scenes(first[1], block_means(grey), float(np.mean(res**2))):
+                    g.scenes = True  # a condition without metadata to tell photographs apart: their content does
+                    frame_blocks.clear()  # neither the level-drift test nor the noise's correlation applies
+                    if PHOTOGRAPHS_NOTE not in notes:
+                        notes.append(PHOTOGRAPHS_NOTE)
+                if g.scenes:
+                    ms = photo_ms.setdefault(rpos[g.index], np.zeros((2, *shp), np.float32))
+                    if j == 1:
+                        ms[0] += first[0]
+                    ms[j % 2] += (res * res).astype(np.float32)
+                else:  # different scenes: their differences are neither noise nor a level change
+                    frame_blocks.append(block_means(grey))
+                    if previous is not None:
+                        lag.add(previous, grey)
+                    previous = grey
         stats = whole.result()
         mean_all[g.index], var_all[g.index] = stats.mean, stats.var
         lo[g.index], hi[g.index] = stats.minimum, stats.maximum
@@ -310,12 +394,26 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
             a, b = halves[0].result(), halves[1].result()
             mean_a[r], mean_b[r] = a.mean, b.mean
             n_a[r], n_b[r] = a.n, b.n
+            if g.scenes:
+                photo_ms[r][0] /= a.n
+                photo_ms[r][1] /= b.n
             var_resid[g.index] = resid.result().var
+            if g.scenes:
+                # a pixel's spread over different scenes is the scenes', not noise: what stands for its temporal
+                # variance is the spread of its residual from each photograph's own scene estimate (noise and
+                # the scenes' texture finer than the estimate), per frame rather than per residual
+                var_all[g.index] = var_resid[g.index] / (1.0 + KERNEL_VAR)
             blocks.append(np.array(frame_blocks))
+    half_ms = None
+    if photo_ms:
+        half_ms = np.zeros((R, 2, *shp), np.float32)  # zero for conditions of repeats (not used there)
+        for r, ms in photo_ms.items():
+            half_ms[r] = ms
     full_scale = infer_full_scale(np.dtype(dtype), max(0.0, float(hi.max())))
     border = SCENE_SIZE // 2 if border is None else int(border)
     meas = Measurements(ds.root, shp, full_scale, border, epoch_times, has_time, groups, mean_all, var_all, lo, hi,
-                        repeated, mean_a, mean_b, n_a, n_b, len(ds), notes=notes, var_resid=var_resid)
+                        repeated, mean_a, mean_b, n_a, n_b, len(ds), notes=notes, var_resid=var_resid,
+                        half_ms=half_ms)
     jpeg = any(Path(f.file).suffix.lower() in JPEG_SUFFIXES for f in ds.frames)
     meas.traits = NoiseTraits(lag.result(), blocks, jpeg)
     meas.scene_all = np.empty_like(mean_all)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import signal
+from scipy import ndimage, signal
 
 from forensics.check.classes import NORMAL, QUANT_VAR, STK, class_maps, dark_groups
 from forensics.check.measurements import Group, Measurements
@@ -47,6 +47,10 @@ class NoiseFloor:
     raw: np.ndarray  #: the same from each pixel's own sample variance (quantisation variance for noiseless stuck pixels)
     a_grey: np.ndarray | None = None  #: the pixel's own variance law: intercept per condition
     b_grey: np.ndarray | None = None  #: and slope
+    #: the scored half's floor and raw floor where they differ from the fitted half's (photographs: each half
+    #: has its own scenes' texture); None: the same as ``floor`` / ``raw``
+    floor_b: np.ndarray | None = None
+    raw_b: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -107,6 +111,15 @@ class PixelData:
     def raw_floor(self) -> np.ndarray:
         return self.noise.raw
 
+    @property
+    def floor_b(self) -> np.ndarray:
+        """The floor of the scored (second) half's means."""
+        return self.noise.floor if self.noise.floor_b is None else self.noise.floor_b
+
+    @property
+    def raw_floor_b(self) -> np.ndarray:
+        return self.noise.raw if self.noise.raw_b is None else self.noise.raw_b
+
 
 def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, usable: np.ndarray,
                catalogue: DefectCatalogue) -> PixelData:
@@ -118,8 +131,12 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
     # prediction can replace them by what the model says a typical pixel there would read
     mask_by_epoch = [c != NORMAL for c in epoch_classes]
     defect_mask = np.stack([mask_by_epoch[g.epoch] for g in rgroups])
-    sa = [scene_estimate_and_fill(meas.mean_a[r], defect_mask[r]) for r in range(len(rgroups))]
-    sb = [scene_estimate_and_fill(meas.mean_b[r], defect_mask[r]) for r in range(len(rgroups))]
+    # photographs: no search for outliers beyond the known defects — in a textured scene the outliers are its
+    # edges, and filling them would make the estimate a non-linear function of the scenes, whose noise the
+    # per-frame residuals (linear) no longer measure
+    passes = [1 if g.scenes else 4 for g in rgroups]
+    sa = [scene_estimate_and_fill(meas.mean_a[r], defect_mask[r], passes=passes[r]) for r in range(len(rgroups))]
+    sb = [scene_estimate_and_fill(meas.mean_b[r], defect_mask[r], passes=passes[r]) for r in range(len(rgroups))]
     fill_a = np.stack([np.where(defect_mask[r], sa[r][1], 0.0) for r in range(len(rgroups))])
     fill_b = np.stack([np.where(defect_mask[r], sb[r][1], 0.0) for r in range(len(rgroups))])
     refill_ops = {e: kernel_scatter(m != NORMAL, KERNEL) for e, m in enumerate(epoch_classes)}
@@ -225,7 +242,17 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
     smooth = np.maximum(a[:, None, None] + b[:, None, None] * at, QUANT_VAR * factor) / factor
     floor = np.where(scene, smooth, own)
     raw = np.where(scene, np.maximum(resid, QUANT_VAR * factor) / factor, own_raw)
-    return NoiseFloor(a, b, floor, raw, a_grey, b_grey)
+    if meas.half_ms is None:
+        return NoiseFloor(a, b, floor, raw, a_grey, b_grey)
+    # photographs: each half's own residual mean square (its scenes' texture and the noise), per pixel — a level
+    # law cannot describe texture, which lives at edges — smoothed over 3 × 3 pixels for weights and z-scores
+    halves = []
+    for h in (0, 1):
+        ms = np.maximum(meas.half_ms[:, h].astype(np.float64), QUANT_VAR * factor) / factor
+        local = np.stack([ndimage.uniform_filter(x, 3, mode="nearest") for x in ms])
+        photo = np.array([g.scenes for g in rgroups])[:, None, None] & scene
+        halves.append((np.where(photo, local, floor), np.where(photo, ms, raw)))
+    return NoiseFloor(a, b, halves[0][0], halves[0][1], a_grey, b_grey, halves[1][0], halves[1][1])
 
 
 def level_changes(meas: Measurements, g: Group) -> float:
@@ -257,7 +284,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     labels = np.full(usable.shape, -1, np.int16 if n_bins * len(rgroups) < 2**15 else np.int32)
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
-        if m.sum() < 30:
+        if m.sum() < 30 or g.scenes:  # photographs: a pixel's spread over scenes is not its temporal variance
             continue
         lev = meas.mean_all[g.index][m]
         v = meas.var_all[g.index][m] - level_changes(meas, g)

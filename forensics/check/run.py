@@ -127,7 +127,7 @@ def _plot_data(ev: Evidence, fitted: FittedModel, consistency: np.ndarray, covar
     meas, px, counts = ev.meas, fitted.pixels, ev.defects.counts
     r = meas.mean_b - fitted.mu_b
     nb = meas.n_b[:, None, None].astype(float)
-    zb = r / np.sqrt(px.floor * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb)
+    zb = r / np.sqrt(px.floor_b * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         residual_map = np.nanmean(np.where(ev.usable, r, np.nan), axis=0)

@@ -289,7 +289,7 @@ def residual_structure(ev: Evidence, fitted: FittedModel) -> StructureResult:
     nb = meas.n_b[:, None, None].astype(float)
     r_a = meas.mean_a - fitted.mu_a
     r_b = meas.mean_b - fitted.mu_b
-    var_b = px.floor * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb
+    var_b = px.floor_b * (1.0 + np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)) / nb
     z_a, z_b = r_a / np.sqrt(px.var_a), r_b / np.sqrt(var_b)
     normal = ev.usable & (px.classes == NORMAL)
     fixed = normal.all(axis=0)
