@@ -381,7 +381,7 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
                     if j == 1:
                         ms[0] += first[0]
                     ms[j % 2] += (res * res).astype(np.float32)
-                else:  # different scenes: their differences are neither noise nor a level change
+                else:  # repeats: the level-drift test's blocks and the noise's spatial correlation
                     frame_blocks.append(block_means(grey))
                     if previous is not None:
                         lag.add(previous, grey)
@@ -394,11 +394,10 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
             a, b = halves[0].result(), halves[1].result()
             mean_a[r], mean_b[r] = a.mean, b.mean
             n_a[r], n_b[r] = a.n, b.n
+            var_resid[g.index] = resid.result().var
             if g.scenes:
                 photo_ms[r][0] /= a.n
                 photo_ms[r][1] /= b.n
-            var_resid[g.index] = resid.result().var
-            if g.scenes:
                 # a pixel's spread over different scenes is the scenes', not noise: what stands for its temporal
                 # variance is the spread of its residual from each photograph's own scene estimate (noise and
                 # the scenes' texture finer than the estimate), per frame rather than per residual

@@ -246,11 +246,11 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
         return NoiseFloor(a, b, floor, raw, a_grey, b_grey)
     # photographs: each half's own residual mean square (its scenes' texture and the noise), per pixel — a level
     # law cannot describe texture, which lives at edges — smoothed over 3 × 3 pixels for weights and z-scores
+    photo = np.array([g.scenes for g in rgroups])[:, None, None] & scene
     halves = []
     for h in (0, 1):
         ms = np.maximum(meas.half_ms[:, h].astype(np.float64), QUANT_VAR * factor) / factor
         local = np.stack([ndimage.uniform_filter(x, 3, mode="nearest") for x in ms])
-        photo = np.array([g.scenes for g in rgroups])[:, None, None] & scene
         halves.append((np.where(photo, local, floor), np.where(photo, ms, raw)))
     return NoiseFloor(a, b, halves[0][0], halves[0][1], a_grey, b_grey, halves[1][0], halves[1][1])
 

@@ -44,7 +44,8 @@ class ParamEstimate:
             return f"not identifiable from these data ({self.note})"
         if self.bound and self.limit is not None:
             side = "<" if self.bound == "lower" else ">"
-            return f"{self.value:.6g} {self.unit} (at its {self.bound} bound; {side} {self.limit:.4g} at 95 %)".replace("  ", " ")
+            unit = f" {self.unit}" if self.unit else ""
+            return f"{self.value:.6g}{unit} (at its {self.bound} bound; {side} {self.limit:.4g} at 95 %)"
         se = "" if self.se is None else f" ± {self.se:.4g}"
         return f"{self.value:.6g}{se} {self.unit}".rstrip()
 
