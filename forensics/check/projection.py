@@ -152,7 +152,9 @@ def shrink_local(weight: np.ndarray, X: list[np.ndarray], coef: np.ndarray, prec
 
     With one column this is the familiar shrinkage β̂·τ²/(τ² + s²); with several, fixed effects that are
     collinear with a random one (a defect's offset and the per-pixel dark-rate pattern) take over what the
-    random one gives up instead of both being shrunk.  Columns without information at a pixel stay 0.
+    random one gives up instead of both being shrunk.  A column without information at a pixel keeps its
+    value if it is a fixed effect (nothing in the data moves it: a stuck pixel read at full scale, whose censored
+    means are not used, keeps its detected value) and goes to its prior mean 0 if it is a random effect.
     """
     A = normal_matrix(X, weight)
     k = len(X)
@@ -162,9 +164,11 @@ def shrink_local(weight: np.ndarray, X: list[np.ndarray], coef: np.ndarray, prec
     rhs = np.einsum("...ij,...j->...i", A, beta)
     M = A + np.diag(np.where(np.isfinite(prec), prec, 0.0))
     for i in range(k):
-        # a dead column or one fixed at 0: the row becomes β_i = 0 (its column then multiplies 0)
-        zero = dead[..., i] | bool(np.isinf(prec[i]))
-        M[..., i, :] = np.where(zero[..., None], 0.0, M[..., i, :])
-        M[..., i, i] = np.where(zero, 1.0, M[..., i, i])
-        rhs[..., i] = np.where(zero, 0.0, rhs[..., i])
+        # a dead column or one fixed at 0: the row becomes β_i = β̂_i (a fixed effect without data) or β_i = 0
+        # (a random effect's prior mean); a dead column multiplies nothing in the other rows
+        pinned = dead[..., i] | bool(np.isinf(prec[i]))
+        M[..., i, :] = np.where(pinned[..., None], 0.0, M[..., i, :])
+        M[..., i, i] = np.where(pinned, 1.0, M[..., i, i])
+        keep = beta[..., i] if prec[i] == 0 else 0.0
+        rhs[..., i] = np.where(pinned, keep, rhs[..., i])
     return np.moveaxis(np.linalg.solve(M, rhs[..., None])[..., 0], -1, 0)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from forensics.check.projection import PixelProjector, solve_local
+from forensics.check.projection import PixelProjector, shrink_local, solve_local
 
 
 def _columns(rng, R=9, shape=(4, 5), k=3):
@@ -49,6 +49,25 @@ def test_dead_column_stays_zero():
     coef, var = solve_local(w, X, rng.standard_normal(X[0].shape))
     assert coef[1, 1, 1] == 0.0 and np.isnan(var[1, 1, 1])
     assert np.isfinite(var[1]).sum() == var[1].size - 1
+
+
+def test_shrinkage_keeps_a_fixed_effect_without_data_and_zeroes_a_random_one():
+    """A stuck pixel read at full scale is censored (weight 0 in every condition): its constant value is a fixed
+    effect the data cannot move, so shrinking the random-effect patterns (PRNU) must leave it as detected —
+    zeroing it let 16383 DN leak into its neighbours' predictions through the scene estimate's refill.  A random
+    effect without data goes to its prior mean 0.  Elsewhere the one-column shrinkage is β̂·τ²/(τ² + s²)."""
+    rng = np.random.default_rng(4)
+    X, w = _columns(rng, k=2)
+    w[:, 2, 3] = 0.0  # no data at all at this pixel
+    coef = rng.standard_normal((2, *w.shape[1:])) + 5.0
+    tau2 = 0.5
+    out = shrink_local(w, X, coef, np.array([0.0, 1.0 / tau2]))
+    assert out[0, 2, 3] == coef[0, 2, 3]  # fixed effect, no data: unchanged
+    assert out[1, 2, 3] == 0.0  # random effect, no data: its prior mean
+    one = shrink_local(w, X[1:], coef[1:], np.array([1.0 / tau2]))
+    a = np.sum(w * X[1] ** 2, axis=0)
+    expected = np.where(a > 0, coef[1] * tau2 / (tau2 + 1.0 / np.where(a > 0, a, 1.0)), 0.0)
+    np.testing.assert_allclose(one[0], expected, rtol=1e-9, atol=1e-12)
 
 
 def test_projection_is_orthogonal_and_idempotent_even_with_collinear_columns():
