@@ -127,7 +127,10 @@ class Predictor:
                 light = cache[key][1]
             mu = device.mean_signal(light, ctx)
             if pixels.defect_mask[r].any():
-                deviation = mu - clean.mean_signal(light, context(clean, g))
+                # a defect read at 0 or full scale shows its clipped value: the deviation it shows is the clipped
+                # one (a stuck pixel at black level + c beyond full scale would otherwise leak the excess, e.g.
+                # the black level, into every neighbour's prediction)
+                deviation = np.clip(mu, 0.0, self.meas.full_scale) - clean.mean_signal(light, context(clean, g))
                 src, dst, wts = pixels.refill_ops[g.epoch]
                 refill = (means[r] - deviation - fills[r]).ravel()[src]
                 correction = np.bincount(dst, wts * refill, minlength=h * w)

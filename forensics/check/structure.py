@@ -24,7 +24,9 @@ alone would show as a column pattern after a column effect is added — does not
 are correlated; the exact covariance of every bin sum follows from the kernel's autocorrelation and the bins'
 geometry (:func:`bin_covariance`), scaled by the residual's own measured variance — so any pixel-to-pixel
 independent leftover (noise, or an uncatalogued per-pixel pattern) is the null, and only structure shared
-along a row, a column, a ring or a covariate counts.  The profile is tested by a whitened χ² (directions the
+along a row, a column, a ring or a covariate counts.  In frames known to be dark the prediction is the
+chain's own output, not the scene estimate, so there the residual is the noise itself: those conditions are
+summed and tested apart (independent bins), and the two χ² add.  The profile is tested by a whitened χ² (directions the
 kernel removes — smooth profiles — dropped).  Trends use ordinary least squares with the standard error from
 the scatter about the line (t with n − 2 df).
 
@@ -48,7 +50,7 @@ from typing import Any
 import numpy as np
 from scipy import signal, stats
 
-from forensics.check.classes import NORMAL
+from forensics.check.classes import NORMAL, dark_groups
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
 from forensics.check.result import StructureResult, StructureTest
@@ -165,7 +167,8 @@ def white_gain(labels: np.ndarray, pattern_labels: np.ndarray, n_bins: int) -> n
 
 
 def profile_test(kind: str, zsum: np.ndarray, rbar: np.ndarray, labels: np.ndarray, pattern_labels: np.ndarray,
-                 centres: np.ndarray) -> tuple[StructureTest, dict[str, Any]]:
+                 centres: np.ndarray, white: tuple[np.ndarray, np.ndarray, float] | None = None,
+                 ) -> tuple[StructureTest, dict[str, Any]]:
     """Test the bin means of a residual against the null of pixel-to-pixel independent leftovers.
 
     Parameters
@@ -173,15 +176,21 @@ def profile_test(kind: str, zsum: np.ndarray, rbar: np.ndarray, labels: np.ndarr
     kind
         ``column``, ``row`` or ``radial``.
     zsum
-        Summed standardised residual per pixel (only where ``labels >= 0``).
+        Summed standardised residual per pixel (only where ``labels >= 0``) of the conditions whose prediction
+        uses the scene estimate: ``(I − K)`` applied to the noise.
     rbar
-        The residual in DN (mean over halves and conditions), same pixels.
+        Their residual in DN (mean over halves and conditions), same pixels.
     labels
         Bin of each pixel used (−1: not used).
     pattern_labels
         Bin of every pixel of the frame (for the size of a bin-wise independent pattern).
     centres
         Position of each bin (column, row, radius in px).
+    white
+        ``(zsum, rbar, share)`` of the conditions whose prediction does not use the scene estimate (frames known
+        to be dark: the chain's own output is predicted), where the residual is the noise itself and bins are
+        independent; ``share`` is their fraction of all conditions.  The two parts are independent (different
+        frames): the test is the sum of their χ² with the sum of their degrees of freedom.
 
     Returns
     -------
@@ -190,31 +199,45 @@ def profile_test(kind: str, zsum: np.ndarray, rbar: np.ndarray, labels: np.ndarr
     nb = int(labels.max()) + 1
     use = labels >= 0
     n = np.bincount(labels[use], minlength=nb).astype(float)
+    have = n > 0
     geo, gains, geo_evals, evecs = _geometry(labels, pattern_labels, nb)
     ac0 = float(A2[A2.shape[0] // 2, A2.shape[1] // 2])  # 1 + Σw²
+    share = 0.0 if white is None else float(white[2])
+    chi, df = 0.0, 0
+    noise = np.zeros(int(have.sum()))
     s2 = float(np.mean(zsum[use] ** 2)) / ac0
-    s2_dn = float(np.mean(rbar[use] ** 2)) / ac0
-    sums = np.bincount(labels[use], weights=zsum[use], minlength=nb)
-    have = n > 0
-    evals = s2 * geo_evals  # of the bins' covariance s2 · geo (geo's eigenvectors)
-    keep = evals > EIG_FLOOR * max(float(evals.max()), 1e-300)
-    # whitened χ² of the bin sums, with a common mean per pixel fitted (GLS) and removed: only differences
-    # between bins count
-    u = evecs[:, keep] / np.sqrt(evals[keep])
-    zs, zn = u.T @ sums[have], u.T @ n[have]
-    chi = float(zs @ zs - (zs @ zn) ** 2 / max(float(zn @ zn), 1e-300))
-    df = max(int(keep.sum()) - 1, 0)
+    if share < 1.0 and s2 > 0:
+        sums = np.bincount(labels[use], weights=zsum[use], minlength=nb)
+        evals = s2 * geo_evals  # of the bins' covariance s2 · geo (geo's eigenvectors)
+        keep = evals > EIG_FLOOR * max(float(evals.max()), 1e-300)
+        # whitened χ² of the bin sums, with a common mean per pixel fitted (GLS) and removed: only differences
+        # between bins count
+        u = evecs[:, keep] / np.sqrt(evals[keep])
+        zs, zn = u.T @ sums[have], u.T @ n[have]
+        chi += float(zs @ zs - (zs @ zn) ** 2 / max(float(zn @ zn), 1e-300))
+        df += max(int(keep.sum()) - 1, 0)
+        noise += (1.0 - share) ** 2 * float(np.mean(rbar[use] ** 2)) / ac0 * np.diag(geo)[have] / n[have] ** 2
+    if white is not None and share > 0:
+        wz, wr = white[0], white[1]
+        s2w = float(np.mean(wz[use] ** 2))
+        if s2w > 0:
+            sums = np.bincount(labels[use], weights=wz[use], minlength=nb)[have]
+            zs, zn = sums / np.sqrt(s2w * n[have]), np.sqrt(n[have] / s2w)
+            chi += float(zs @ zs - (zs @ zn) ** 2 / float(zn @ zn))
+            df += int(have.sum()) - 1
+        noise += share**2 * float(np.mean(wr[use] ** 2)) / n[have]
+        rbar = (1.0 - share) * rbar + share * wr
     p = float(stats.chi2.sf(chi, df)) if df else 1.0
     prof = np.bincount(labels[use], weights=rbar[use], minlength=nb)[have] / n[have]
     prof = prof - float(np.sum(prof * n[have]) / np.sum(n[have]))
-    noise = s2_dn * np.diag(geo)[have] / n[have] ** 2
     ms = float(np.mean(prof**2 - noise))
     rms = math.sqrt(max(ms, 0.0))
-    gain = float(np.mean(gains[have]))
+    # a pattern's share of its variance that reaches the profile: (I − K)'s in the scene part, all in the white
+    gain = float(((1.0 - share) * np.sqrt(np.mean(gains[have])) + share) ** 2)
     total = float(np.mean(rbar[use] ** 2))
-    share = max(ms, 0.0) / total if total > 0 else 0.0
+    share_var = max(ms, 0.0) / total if total > 0 else 0.0
     test = StructureTest(kind=kind, label=LABELS[kind], statistic=chi, df=float(df), p=p, p_holm=p, size=rms,
-                         unit="DN rms", pattern_rms=rms / math.sqrt(gain) if gain > 0 else None, share=share,
+                         unit="DN rms", pattern_rms=rms / math.sqrt(gain) if gain > 0 else None, share=share_var,
                          sees=SEES[kind])
     return test, {"x": centres[:nb][have], "profile": prof, "null_sd": np.sqrt(noise)}
 
@@ -294,10 +317,19 @@ def residual_structure(ev: Evidence, fitted: FittedModel) -> StructureResult:
     normal = ev.usable & (px.classes == NORMAL)
     fixed = normal.all(axis=0)
     notes: list[str] = []
+    # in frames known to be dark the prediction is the chain's own output, not the scene estimate: there the
+    # residual is the noise itself (bins independent), elsewhere (I − K) applied to it — two nulls, kept apart
+    dark = dark_groups(ev.rgroups)
+    parts = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        zsum = np.where(fixed, np.sum(z_a + z_b, axis=0), 0.0)
-        rbar = np.where(fixed, np.mean(r_a + r_b, axis=0) / 2.0, 0.0)
+        for name, sel in (("scene", ~dark), ("white", dark)):
+            parts[name] = (np.where(fixed, np.sum(z_a[sel] + z_b[sel], axis=0), 0.0),
+                           np.where(fixed, np.mean(r_a[sel] + r_b[sel], axis=0) / 2.0, 0.0) if sel.any()
+                           else np.zeros(meas.shape))
+    zsum = parts["scene"][0] + parts["white"][0]
+    share = float(dark.mean())
+    white = (*parts["white"], share) if dark.any() else None
     if fixed.sum() < 100:
         note = "fewer than 100 pixels are normal in every condition: no structure tests"
         return StructureResult(tests=[], named=None, notes=[note])
@@ -309,7 +341,7 @@ def residual_structure(ev: Evidence, fitted: FittedModel) -> StructureResult:
     tests: list[StructureTest] = []
     plots: dict[str, Any] = {"profiles": {}, "trends": {}}
     for kind, (lab, full, centres) in _labels(meas.shape, used).items():
-        t, pl = profile_test(kind, zsum, rbar, lab, full, centres)
+        t, pl = profile_test(kind, *parts["scene"], lab, full, centres, white)
         tests.append(t)
         plots["profiles"][kind] = pl
     for kind, per_cond, unit in (("trend", _masked_mean((r_a + r_b) / 2.0, normal), "DN"),
