@@ -59,7 +59,6 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     """
     y = ev.meas.mean_a
     w = pixels.weight
-    fs = ev.meas.full_scale
     effects = list(effects)
 
     def predict(dev: Device, clip: bool = True) -> np.ndarray:
@@ -85,7 +84,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     converged = False
     for cycle in range(max_cycles):
         raw = predict(dev, clip=False)  # derivatives ignore the clipping (clipped values are censored)
-        mu = np.clip(raw, 0.0, fs)
+        mu = ev.predictor.censor(dev, raw)  # residuals: what the data show near 0 and full scale
         # -- pixel-local patterns, jointly per pixel
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         if local:
@@ -111,7 +110,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             break
         chi_prev = chi
     raw = predict(dev, clip=False)
-    mu = np.clip(raw, 0.0, fs)
+    mu = ev.predictor.censor(dev, raw)
     if local:
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         _, local_var = solve_local(w, X_local, y - mu, centred)

@@ -140,10 +140,13 @@ class Predictor:
                 light[touched] = scene if table is None else np.interp(scene, table[0], table[1])
                 mu = device.mean_signal(light.reshape(h, w), ctx)
             out[r] = mu
-        if clip:
-            for r, g in enumerate(self.rgroups):
-                out[r] = censored_mean(out[r], context(device, g), self.meas.full_scale)
-        return out
+        return self.censor(device, out) if clip else out
+
+    def censor(self, device: Device, raw: np.ndarray) -> np.ndarray:
+        """The mean readout the data show of latent means ``raw`` (R, H, W): :func:`censored_mean` per condition
+        (a new array)."""
+        return np.stack([censored_mean(raw[r], context(device, g), self.meas.full_scale)
+                         for r, g in enumerate(self.rgroups)])
 
 
 def censored_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: float = 6.0) -> np.ndarray:
