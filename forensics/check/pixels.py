@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage, signal
 
-from forensics.check.classes import NORMAL, QUANT_VAR, STK, class_maps, dark_groups
+from forensics.check.classes import NORMAL, PART, QUANT_VAR, STK, class_maps, dark_groups
 from forensics.check.measurements import Group, Measurements
 from forensics.check.scene import (
     KERNEL,
@@ -207,6 +207,38 @@ def uses_scene(classes: np.ndarray, rgroups: Sequence[Group]) -> np.ndarray:
     return (classes != STK) & ~dark_groups(rgroups)[:, None, None]
 
 
+#: A condition in which more than this share of the interior's normal pixels touched 0 or full scale in some
+#: frame is near a bound: the normal pixels left there are a truncated sample.
+NEAR_BOUND_SHARE = 0.01
+
+
+def near_bound_conditions(meas: Measurements, usable: np.ndarray, classes: np.ndarray,
+                          share: float = NEAR_BOUND_SHARE) -> np.ndarray:
+    """Per repeated condition: whether more than ``share`` of its interior normal pixels are not usable (their
+    readout touched 0 or full scale)."""
+    normal = meas.interior[None] & (classes == NORMAL)
+    bad = (normal & ~usable).sum(axis=(1, 2))
+    return bad > share * np.maximum(normal.sum(axis=(1, 2)), 1)
+
+
+def _pooled_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray, pools: Sequence[Any]) -> dict[Any, tuple[float, float]]:
+    """Per pool of conditions, one law var = a + b·level fitted (OLS) over ``mask`` of all its conditions
+    (b = 0 with fewer than 10 pixels or no spread of level; pools without pixels are left out)."""
+    out = {}
+    labels = np.asarray(pools, dtype=object)
+    for pool in dict.fromkeys(pools):
+        sel = np.array([p == pool for p in labels])
+        m = mask & sel[:, None, None]
+        lv, vv = level[m], var[m]
+        if not lv.size:
+            continue
+        lc = lv - lv.mean()
+        sxx = float(np.sum(lc * lc))
+        b = float(np.sum(lc * (vv - vv.mean())) / sxx) if lv.size >= 10 and sxx > 0 else 0.0
+        out[pool] = (float(vv.mean() - b * lv.mean()), b)
+    return out
+
+
 def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes: np.ndarray,
                 rgroups: Sequence[Group] | None = None, typical_level: np.ndarray | None = None) -> NoiseFloor:
     """The pixel channel's noise floor from the repeats of normal pixels; measured, never modelled
@@ -242,6 +274,19 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
     smooth = np.maximum(a[:, None, None] + b[:, None, None] * at, QUANT_VAR * factor) / factor
     floor = np.where(scene, smooth, own)
     raw = np.where(scene, np.maximum(resid, QUANT_VAR * factor) / factor, own_raw)
+    # near a bound the normal pixels left are a truncated sample (an 8-bit dark frame at black level 0: the few
+    # that read above 0 in every frame vary by 0.12 DN², a partially stuck pixel 9 DN up by 0.57): there the
+    # partially stuck pixels read their law from their own kind — one law per analog gain over all such
+    # conditions, measured on their temporal variances
+    near = near_bound_conditions(meas, usable, classes)
+    if near.any():
+        lifted = usable & (classes == PART) & near[:, None, None]
+        laws = _pooled_law(level, var, lifted, gain_pools)
+        for r in np.flatnonzero(near):
+            if gain_pools[r] in laws:
+                a_p, b_p = laws[gain_pools[r]]
+                m = classes[r] == PART
+                floor[r][m] = np.maximum(a_p + b_p * level[r][m], QUANT_VAR)
     if meas.half_ms is None:
         return NoiseFloor(a, b, floor, raw, a_grey, b_grey)
     # photographs: each half's own residual mean square (its scenes' texture and the noise), per pixel — a level
@@ -268,8 +313,9 @@ def level_changes(meas: Measurements, g: Group) -> float:
 
 def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarray, classes: np.ndarray,
                   n_bins: int = 3, scene: np.ndarray | None = None, n_spread: int = 16,
-                  near_fraction: float = 0.01) -> VarianceBins:
-    """Mean level and variance of normal pixels in ``n_bins`` quantile bins of level per repeated condition.
+                  near_fraction: float = NEAR_BOUND_SHARE) -> VarianceBins:
+    """Mean level and variance of normal pixels in ``n_bins`` quantile bins of level per repeated condition
+    (quantiles of ``scene``, the neighbours' estimate, where given).
 
     The frames' level changes, where material, are removed from the variances (:func:`level_changes`).
     A condition in which more than ``near_fraction`` of the normal pixels touched 0 or the full scale in some
@@ -282,14 +328,14 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     spread = []
     qs = (np.arange(n_spread) + 0.5) / n_spread
     labels = np.full(usable.shape, -1, np.int16 if n_bins * len(rgroups) < 2**15 else np.int32)
+    near_rows = near_bound_conditions(meas, usable, classes, near_fraction)
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
         if m.sum() < 30 or g.scenes:  # photographs: a pixel's spread over scenes is not its temporal variance
             continue
         lev = meas.mean_all[g.index][m]
         v = meas.var_all[g.index][m] - level_changes(meas, g)
-        normal = meas.interior & (classes[r] == NORMAL)
-        near = scene is not None and float(np.mean(~usable[r][normal])) > near_fraction
+        near = scene is not None and bool(near_rows[r])
         if near:
             # the readout near a bound is far from normal (mostly one or two levels): the bin's weight is the
             # df of a χ² with the spread of its pixels' variances, not the normal theory's
@@ -301,11 +347,17 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
             rows.append((r, float(lev.mean()), float(v.mean()), df))
             # the scene estimate's outlier rejection leans low where most readouts sit on a bound: centre it on
             # the mean readout of all normal pixels (a plain average of the clipped readout, unbiased)
+            normal = meas.interior & (classes[r] == NORMAL)
             shift = float(meas.mean_all[g.index][normal].mean() - scene[r][normal].mean())
             spread.append(np.quantile(scene[r][m], qs) + shift)
             continue
-        edges = np.quantile(lev, np.linspace(0, 1, n_bins + 1))
-        which = np.clip(np.searchsorted(edges, lev, side="right") - 1, 0, n_bins - 1)
+        # bins chosen by a level free of the pixel's own noise (its neighbours' scene estimate): on quantised
+        # data a mean of two readouts that is a half-integer implies an odd difference, so quantiles of the own
+        # mean select on the variance (8-bit, σ 0.7 DN: ±9 % between bins); each bin still reports the mean
+        # of its pixels' own means (unbiased for their latent level, on which the noise laws depend)
+        key = lev if scene is None else scene[r][m]
+        edges = np.quantile(key, np.linspace(0, 1, n_bins + 1))
+        which = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, n_bins - 1)
         sites = np.flatnonzero(m.ravel())  # lev's pixels, in the order of the boolean index
         for k in range(n_bins):
             s = which == k
