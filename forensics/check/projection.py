@@ -157,18 +157,15 @@ def shrink_local(weight: np.ndarray, X: list[np.ndarray], coef: np.ndarray, prec
     means are not used, keeps its detected value) and goes to its prior mean 0 if it is a random effect.
     """
     A = normal_matrix(X, weight)
-    k = len(X)
     prec = np.asarray(precision, float)
-    dead = dead_columns(A)
     beta = np.moveaxis(coef, 0, -1)
-    rhs = np.einsum("...ij,...j->...i", A, beta)
+    # a dead column or one fixed at 0 is pinned: β_i = β̂_i (a fixed effect without data) or 0 (a random
+    # effect's prior mean, or fixed at 0); the others solve (A + P)β = A·β̂ less the pinned columns' share
+    pinned = dead_columns(A) | np.isinf(prec)
+    fixed = np.where(pinned & (prec == 0), beta, 0.0)
+    rhs = np.einsum("...ij,...j->...i", A, beta - fixed)
     M = A + np.diag(np.where(np.isfinite(prec), prec, 0.0))
-    for i in range(k):
-        # a dead column or one fixed at 0: the row becomes β_i = β̂_i (a fixed effect without data) or β_i = 0
-        # (a random effect's prior mean); a dead column multiplies nothing in the other rows
-        pinned = dead[..., i] | bool(np.isinf(prec[i]))
-        M[..., i, :] = np.where(pinned[..., None], 0.0, M[..., i, :])
-        M[..., i, i] = np.where(pinned, 1.0, M[..., i, i])
-        keep = beta[..., i] if prec[i] == 0 else 0.0
-        rhs[..., i] = np.where(pinned, keep, rhs[..., i])
-    return np.moveaxis(np.linalg.solve(M, rhs[..., None])[..., 0], -1, 0)
+    # collinear fixed effects (a defect's offset and a per-pixel dark pattern with no prior) leave M singular:
+    # the pseudo-inverse's minimum-norm split, as in :func:`solve_local`
+    inv, _ = scaled_pinv(M, dead=pinned)
+    return np.moveaxis(np.einsum("...ij,...j->...i", inv, rhs) + fixed, -1, 0)

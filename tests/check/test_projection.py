@@ -68,6 +68,13 @@ def test_shrinkage_keeps_a_fixed_effect_without_data_and_zeroes_a_random_one():
     a = np.sum(w * X[1] ** 2, axis=0)
     expected = np.where(a > 0, coef[1] * tau2 / (tau2 + 1.0 / np.where(a > 0, a, 1.0)), 0.0)
     np.testing.assert_allclose(one[0], expected, rtol=1e-9, atol=1e-12)
+    # two collinear fixed effects (a partially stuck pixel's offset and a per-pixel dark pattern with no prior):
+    # their normal matrix is singular; the fitted values are kept, split by minimum norm
+    Xc = [X[0], 2.0 * X[0], X[1]]
+    split = shrink_local(w, Xc, np.stack([coef[0], np.zeros_like(coef[0]), coef[1]]), np.array([0.0, 0.0, 0.0]))
+    fitted = sum(c[None] * x for c, x in zip(split, Xc))
+    np.testing.assert_allclose(fitted * (w > 0), (coef[0][None] * X[0] + coef[1][None] * X[1]) * (w > 0),
+                               rtol=1e-6, atol=1e-9)
 
 
 def test_projection_is_orthogonal_and_idempotent_even_with_collinear_columns():
