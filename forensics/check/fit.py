@@ -18,6 +18,7 @@ from scipy import optimize
 from forensics.check.arrivals import DefectCounts
 from forensics.check.classes import NORMAL
 from forensics.check.evidence import Evidence
+from forensics.check.prediction import SCENE_SHIFT
 from forensics.check.identify import bounded_step, estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
@@ -65,7 +66,7 @@ class FittedModel:
         return [e for e in self.effects if e.stage == Stage.NOISE]
 
 
-def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 12) -> FittedModel:
+def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24) -> FittedModel:
     """Fit ``effects`` to the evidence (the objects given are left unchanged).
 
     Pixel classes come from defect detection; when the model has fixed patterns on normal pixels, detection is
@@ -146,6 +147,8 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     for i, e in zip(n_idx, noise):
         effects[i] = e
     device = on_device(device, effects)
+    if SCENE_SHIFT in device.state:  # the shrunk patterns' neighbour term
+        device.state[SCENE_SHIFT] = ev.predictor.scene_shift(device, pixels)
     mu_b = ev.predictor.predict(device, pixels, "b")
     sims, spatial_null = {}, None
     if arrivals and len(ev.times) >= 2:

@@ -22,16 +22,22 @@ from forensics.sensor.catalogue import PARTIAL
 from forensics.stats.counts import laplace_trend_z, poisson_deviance
 
 
-def class_errors(ev: Evidence, fitted: FittedModel) -> dict[str, float | None]:
-    """Held-out error per class: √(Σ residual² / Σ noise floor) on the second half of the repeats."""
+def heldout_terms(ev: Evidence, fitted: FittedModel) -> tuple[np.ndarray, np.ndarray]:
+    """Per (condition, pixel) of the second half of the repeats: the squared residual and its noise floor."""
     px = fitted.pixels
     meas = ev.meas
     r = meas.mean_b - fitted.mu_b
     nb = meas.n_b[:, None, None].astype(float)
     scene_term = np.where(uses_scene(px.classes, ev.rgroups), KERNEL_VAR, 0.0)
-    floor = px.raw_floor_b * (1.0 + scene_term) / nb
+    return r * r, px.raw_floor_b * (1.0 + scene_term) / nb
+
+
+def class_errors(ev: Evidence, fitted: FittedModel) -> dict[str, float | None]:
+    """Held-out error per class: √(Σ residual² / Σ noise floor) on the second half of the repeats."""
+    px = fitted.pixels
+    meas = ev.meas
+    r2, floor = heldout_terms(ev, fitted)
     out: dict[str, float | None] = {}
-    r2 = r * r
     for k, name in enumerate(CLASSES):
         m = ev.usable & (px.classes == k)
         if not m.any():

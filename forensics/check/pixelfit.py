@@ -1,6 +1,7 @@
 """The pixel channel's fit: fixed patterns and global parameters on the first half of the repeats."""
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -10,6 +11,7 @@ from forensics.check.evidence import Evidence
 from forensics.check.identify import bounded_step, estimates
 from forensics.check.params import on_device, with_clipped_param, with_param
 from forensics.check.pixels import PixelData
+from forensics.check.prediction import SCENE_SHIFT
 from forensics.check.projection import PixelProjector, solve_local
 from forensics.check.result import ParamEstimate
 from forensics.sensor.model import Device, Effect, Pattern
@@ -24,6 +26,11 @@ class PixelFit:
     nuisance: list[np.ndarray]  #: derivatives of the prediction along the pixel-local patterns
     local: list[tuple[int, Pattern]]  #: (effect index, pattern) of the pixel-local patterns
     local_var: np.ndarray | None  #: variances of their fitted values
+
+
+#: Updates of the neighbours' pattern term per fit cycle, each followed by the pixel-local solve (until it
+#: moves by less than 1 % of the noise).
+SHIFT_UPDATES = 10
 
 
 def used_blocks(pat: Pattern) -> np.ndarray:
@@ -78,17 +85,41 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     other = [(i, p) for i, p in pats if not p.pixel_local]
     glob = [(i, n) for i in pixel_idx for n in effects[i].free_params()]
     chi_prev = np.inf
+    shift_tol = 1e-3 * math.sqrt(float(np.median(pixels.var_a[w > 0]))) if np.any(w > 0) else 0.0
     X_local: list[np.ndarray] = []
     local_var = None
     H = cross = None
     converged = False
     for cycle in range(max_cycles):
+        if pats:  # the neighbours' additive patterns in the scene estimates, frozen for this cycle
+            dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
         raw = predict(dev, clip=False)  # derivatives ignore the clipping (clipped values are censored)
         mu = ev.predictor.censor(dev, raw)  # residuals: what the data show near 0 and full scale
         # -- pixel-local patterns, jointly per pixel
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         if local:
             mu = refit_local(dev, X_local, mu)
+            # the neighbour term converges by a factor of about the light frames' share of a pattern's
+            # information per update: a few cheap updates of it and the local solve (same derivatives) here, so
+            # that the expensive global step sees settled patterns
+            # that the expensive global step sees settled patterns; an update that raises χ² (far from the fit,
+            # where the globals have not settled) is undone and ends the updates
+            chi_local = float(np.sum(w * (y - mu) ** 2))
+            for _ in range(SHIFT_UPDATES):
+                old_shift = dev.state[SCENE_SHIFT]
+                new = ev.predictor.scene_shift(dev, pixels)
+                if not new.size or float(np.max(np.abs(new - old_shift))) <= shift_tol:
+                    break
+                saved = [p.values.copy() for _, p in local]
+                dev.state[SCENE_SHIFT] = new
+                trial = refit_local(dev, X_local, predict(dev))
+                chi_trial = float(np.sum(w * (y - trial) ** 2))
+                if chi_trial > chi_local:
+                    for (_, p), v in zip(local, saved):
+                        p.values[...] = v
+                    dev.state[SCENE_SHIFT] = old_shift
+                    break
+                mu, chi_local = trial, chi_trial
         # -- other patterns, block by block
         for _, p in other:
             x = pattern_derivative(predict, dev, p, predict(dev, clip=False))
@@ -109,6 +140,8 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             converged = True
             break
         chi_prev = chi
+    if pats:
+        dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
     raw = predict(dev, clip=False)
     mu = ev.predictor.censor(dev, raw)
     if local:

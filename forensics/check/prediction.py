@@ -16,6 +16,15 @@ signal, defects), not the neighbours'.  Near 0 or the full scale the predicted m
 readout conditional on no frame touching a bound (the pixels that touched one are not usable), from the
 model's own noise (:func:`forensics.stats.censored.readout_moments`).
 
+A scene estimate averages the neighbours' readings, and with them their own additive fixed patterns (dark
+signal non-uniformity, DSNU): K·δ with δ the neighbours' deviation from a typical pixel at zero light.  In a
+frame with light the pixel's own pattern would then have to fit δ_p − (K·δ)_p, in a dark frame δ_p — one value
+cannot do both (the error grows with the dark signal).  So K·δ of the fitted device is taken out of the scene
+estimate before it is mapped to light (:meth:`Predictor.scene_shift`).  It is computed once per fit cycle and
+kept frozen in the device's state (:data:`SCENE_SHIFT`): derivatives by a pixel's own pattern value stay local
+(perturbing every pixel's value at once would otherwise cancel through the neighbours).  Multiplicative patterns
+(PRNU) need no such term: their neighbour average scales with the light like the pixel's own and is absorbed.
+
 Noise laws (:meth:`~forensics.sensor.model.Effect.variance`) see the signal above the readout's offset (the
 black level): the output level less :attr:`~forensics.sensor.model.FrameContext.readout_offset`.
 """
@@ -26,12 +35,19 @@ from typing import Any
 
 import numpy as np
 
+from scipy import ndimage
+
 from forensics.check.classes import QUANT_VAR, dark_groups
 from forensics.check.measurements import Group, Measurements
 from forensics.check.pixels import PixelData, VarianceBins
+from forensics.check.scene import KERNEL, edge_estimates
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device, Effect, FrameContext, Stage
 from forensics.stats.censored import readout_moments
+
+
+#: Key of :meth:`Predictor.scene_shift`'s frozen result in a fitted device's state (absent: no shift).
+SCENE_SHIFT = "check:scene_shift"
 
 
 def intact(device: Device) -> Device:
@@ -93,6 +109,31 @@ class Predictor:
             ref[g.index] = clean.mean_signal(light, context(clean, g))
         return ref
 
+    def scene_shift(self, device: Device, pixels: PixelData) -> np.ndarray:
+        """Per repeated condition with light, K·δ: the scene kernel applied to the normal pixels' deviation from
+        a typical pixel at zero light (their additive fixed patterns; defects are refilled separately and count
+        0 here); zeros for dark frames, where nothing deviates, and for data without dark frames.
+        ``(R, H, W)``."""
+        out = np.zeros((len(self.rgroups), *self.shape))
+        if not self.dark.any():
+            # without frames predicted from the chain alone every frame sees a pixel's additive pattern through
+            # the same (I − K): the fitted pattern is its (I − K) part and the prediction is exact without the
+            # term (which would only add a slowly converging direction the data do not determine)
+            return out
+        clean, typical = intact(device), device.typical()
+        zero = np.zeros(self.shape)
+        for r, g in enumerate(self.rgroups):
+            if self.dark[r]:
+                continue
+            delta = clean.mean_signal(zero, context(clean, g)) - typical.mean_signal(zero, context(typical, g))
+            delta = np.where(pixels.defect_mask[r], 0.0, delta)
+            if not np.any(np.abs(delta) > 1e-12):
+                continue
+            est = ndimage.correlate(delta, KERNEL, mode="reflect")
+            edge_estimates(delta, est)
+            out[r] = est
+        return out
+
     def predict(self, device: Device, pixels: PixelData, half: str = "a", clip: bool = True) -> np.ndarray:
         """Predicted mean output ``(R, H, W)`` of every repeated condition for the half's scene estimates.
 
@@ -107,6 +148,7 @@ class Predictor:
         means = self.meas.mean_a if half == "a" else self.meas.mean_b
         typical = device.typical()
         clean = intact(device)
+        shift = device.state.get(SCENE_SHIFT)
         out = np.empty(scenes.shape)
         h, w = self.shape
         cache = pixels.light_cache
@@ -116,7 +158,10 @@ class Predictor:
                 out[r] = device.mean_signal(np.zeros(self.shape), ctx)
                 continue
             table = self.table(typical, context(typical, g))
-            if table is None:
+            if shift is not None and np.any(shift[r]):
+                light = scenes[r] - shift[r]
+                light = light if table is None else np.interp(light, table[0], table[1])
+            elif table is None:
                 light = scenes[r]
             else:  # the light of the fixed scene estimate depends only on the global parameters: cache it
                 key = (id(table[0]), half, r)
@@ -137,6 +182,8 @@ class Predictor:
                 touched = np.flatnonzero(correction)
                 light = light.copy().ravel()
                 scene = scenes[r].ravel()[touched] + correction[touched]
+                if shift is not None:
+                    scene = scene - shift[r].ravel()[touched]
                 light[touched] = scene if table is None else np.interp(scene, table[0], table[1])
                 mu = device.mean_signal(light.reshape(h, w), ctx)
             out[r] = mu

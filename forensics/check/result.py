@@ -181,6 +181,17 @@ class PlotData:
     variance: dict[str, Any]
 
 
+@dataclass(frozen=True)
+class HeldOut:
+    """The held-out half's squared residuals and noise floors per (condition, pixel) (float32, NaN where not
+    scored) and the pixel classes they were scored in: two models fitted to the same data are compared on the
+    same means (:func:`~forensics.check.select.paired_fall`)."""
+
+    r2: np.ndarray
+    floor: np.ndarray
+    classes: np.ndarray
+
+
 @dataclass
 class CheckResult:
     """Everything :func:`check` found.  ``to_dict()`` gives the documented JSON."""
@@ -197,6 +208,8 @@ class CheckResult:
     plots: PlotData | None = None
     baseline: "CheckResult | None" = None
     structure: StructureResult | None = None
+    #: held-out terms for paired comparisons of models (not part of ``to_dict``)
+    heldout: HeldOut | None = dataclasses.field(default=None, repr=False, compare=False)
 
     @property
     def flagged(self) -> list[str]:

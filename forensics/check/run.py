@@ -18,9 +18,17 @@ from forensics.check.design import design_warnings, light_levels
 from forensics.check.diagnosis import diagnose
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel, fit_model
-from forensics.check.gof import class_errors, covariate_checks, growth_gof, pixel_gof, spatial_gof, variance_gof
+from forensics.check.gof import (
+    class_errors,
+    covariate_checks,
+    growth_gof,
+    heldout_terms,
+    pixel_gof,
+    spatial_gof,
+    variance_gof,
+)
 from forensics.check.measurements import Measurements, Region, load_measurements
-from forensics.check.result import CheckResult, CheckRow, PlotData
+from forensics.check.result import CheckResult, CheckRow, HeldOut, PlotData
 from forensics.check.pixels import uses_scene
 from forensics.check.scene import KERNEL_VAR
 from forensics.check.structure import residual_structure
@@ -106,7 +114,12 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
         classes = {k: None for k in classes}
         vals, err_var, err_growth = [], None, None
         gof_pixel = gof_var = gof_growth = gof_spatial = None
+    r2, floor = heldout_terms(ev, fitted)
+    scored = ev.usable & np.isfinite(r2)
+    heldout = None if unsettled else HeldOut(np.where(scored, r2, np.nan).astype(np.float32),
+                                             floor.astype(np.float32), px.classes)
     return CheckResult(
+        heldout=heldout,
         effects=[e.key for e in fitted.effects],
         params=fitted.params,
         patterns=fitted.patterns,

@@ -19,11 +19,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from forensics._shared.errors import ForensicsError, UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.evidence import Evidence
 from forensics.check.measurements import Measurements, Region
+from forensics.check.classes import CLASSES
 from forensics.check.result import CheckResult
 from forensics.check.run import base_model, prepare, resolve_effects, run_check
 from forensics.io.dataset import Dataset
@@ -141,8 +144,38 @@ def pixel_error_tolerance(n: int | None) -> float:
     return ERROR_SIGMAS / math.sqrt(2.0 * n)
 
 
+def paired_fall(before: CheckResult, after: CheckResult, cls: str) -> tuple[float, float] | None:
+    """The fall of a class's held-out error² from ``before`` to ``after``, scored on the same means, and its
+    standard error: (Σ r²_before − Σ r²_after) / Σ floor over the pixel means scored in the class by both
+    models, SE from the spread of the per-mean differences.  Most of either error's sampling noise is common to
+    both and cancels; None without the held-out terms or with fewer than 10 common means."""
+    if before.heldout is None or after.heldout is None or cls not in CLASSES:
+        return None
+    k = CLASSES.index(cls)
+    a, b = before.heldout, after.heldout
+    both = (a.classes == k) & (b.classes == k) & np.isfinite(a.r2) & np.isfinite(b.r2)
+    n = int(both.sum())
+    if n < 10:
+        return None
+    d = a.r2[both].astype(np.float64) - b.r2[both]
+    den = float(b.floor[both].sum(dtype=np.float64))
+    if den <= 0:
+        return None
+    return float(d.sum()) / den, math.sqrt(n * float(d.var())) / den
+
+
 def improvement(before: CheckResult, after: CheckResult) -> str | None:
-    """What improved from ``before`` to ``after`` (a short phrase), or None if nothing did beyond its noise."""
+    """What improved from ``before`` to ``after`` (a short phrase), or None if nothing did beyond its noise.
+
+    A pixel class's error counts as fallen when its error² falls by :data:`ERROR_SIGMAS` standard errors of the
+    paired difference (:func:`paired_fall`); without the held-out terms, by the unpaired (conservative)
+    tolerance of :func:`pixel_error_tolerance`."""
+    classes = before.error.get("classes") or {}
+    for cls, b in classes.items():
+        a = (after.error.get("classes") or {}).get(cls)
+        fall = paired_fall(before, after, cls)
+        if fall is not None and _finite(b) and _finite(a) and fall[0] > ERROR_SIGMAS * fall[1]:
+            return f"error.classes.{cls} {b:.4g} → {a:.4g} (paired z {fall[0] / max(fall[1], 1e-300):.1f})"
     n_means = (after.data or {}).get("held_out_means") or {}
     classes = before.error.get("classes") or {}
     worst = max((c for c in classes if _finite(classes[c])), key=lambda c: classes[c], default=None)

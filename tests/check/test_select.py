@@ -8,6 +8,7 @@ from __future__ import annotations
 import itertools
 import json
 
+import numpy as np
 import pytest
 from forensics.fixtures.hidden import (
     HIDDEN,
@@ -120,6 +121,34 @@ def test_the_pixel_errors_tolerance_is_its_sampling_noise():
     after.data = {"held_out_means": {"normal": 110_000}}
     assert sel_mod.improvement(before, after) == "error.pixel 1.02 → 1.01"
     after.data = {"held_out_means": {"normal": 10_000}}
+    assert sel_mod.improvement(before, after) is None
+
+
+def test_a_paired_fall_counts_where_the_unpaired_tolerance_cannot_see_it():
+    """Two models scored on the same 10,000 held-out means: the noise (χ²₁ per mean) is common to both, the
+    second model removes a small misfit (0.1 σ per mean, 1 % of error²).  Unpaired, a 0.5 % fall of the error is
+    inside 3 SE (1/√(2n) = 0.7 % each); paired, the difference's own spread is that of 2·0.1·z·σ (SD 0.2), so
+    the fall of 0.01 in error² has SE 0.2/√n = 0.002: z ≈ 5.  With the misfit removed from nothing (the same
+    residuals) the paired test must not fire."""
+    from forensics.check.result import HeldOut
+
+    rng = np.random.default_rng(12)
+    n = 10_000
+    noise = rng.standard_normal(n)
+    classes = np.zeros(n, np.int8)  # all normal
+    floor = np.ones(n, np.float32)
+    before = _result([], 1.005, ["prnu"])
+    after = _result([], 1.0, [])
+    before.error["classes"], after.error["classes"] = {"normal": 1.005}, {"normal": 1.0}
+    after.data = {"held_out_means": {"normal": n}}
+    before.heldout = HeldOut(((noise + 0.1) ** 2).astype(np.float32), floor, classes)
+    after.heldout = HeldOut((noise**2).astype(np.float32), floor, classes)
+    fall, se = sel_mod.paired_fall(before, after, "normal")
+    assert fall == pytest.approx(0.01 + 0.2 * noise.mean(), abs=1e-6)
+    assert 4 < fall / se < 7
+    assert sel_mod.improvement(before, after).startswith("error.classes.normal")
+    after.heldout = before.heldout
+    assert sel_mod.paired_fall(before, after, "normal")[0] == 0.0
     assert sel_mod.improvement(before, after) is None
 
 
