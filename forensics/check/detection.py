@@ -91,8 +91,8 @@ def epoch_offsets(meas: Measurements, gids: list[int], noise: float,
     inside = dhat[meas.interior]
     # the spread of d̂ over the sensor can never be below what the temporal noise alone gives it (its standard
     # error as an intercept); on quantised data read against a close reference most d̂ share a few values and
-    # their MAD collapses to 0 (8-bit dark frames at black level 0: 14 828 "defects" of 16 384 pixels)
-    # d̂ = Σ_g c_g · mean_g per pixel; each condition's mean has its own temporal variance (a dark frame
+    # their MAD collapses to 0 (8-bit dark frames at black level 0: 14 828 "defects" of 16 384 pixels).
+    # d̂ = Σ_g c_g · mean_g per pixel, each condition's mean with its own temporal variance (a dark frame
     # clipped at 0 far less than a flat)
     c = wts / wsum + np.where(varies & (sxx > 0), (lev.min(0) - lbar) / np.where(sxx > 0, sxx, 1.0), 0.0) * wts * (lev - lbar)
     var_g = np.array([float(np.mean(meas.var_all[g][meas.interior])) for g in gids])[:, None, None]

@@ -18,10 +18,10 @@ from scipy import optimize
 from forensics.check.arrivals import DefectCounts
 from forensics.check.classes import NORMAL
 from forensics.check.evidence import Evidence
-from forensics.check.prediction import SCENE_SHIFT
 from forensics.check.identify import bounded_step, estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
+from forensics.check.prediction import SCENE_SHIFT
 from forensics.check.pixels import PixelData, VarianceBins, pattern_size
 from forensics.check.prediction import predicted_variance
 from forensics.check.projection import PixelProjector, shrink_local

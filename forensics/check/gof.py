@@ -32,11 +32,11 @@ def heldout_terms(ev: Evidence, fitted: FittedModel) -> tuple[np.ndarray, np.nda
     return r * r, px.raw_floor_b * (1.0 + scene_term) / nb
 
 
-def class_errors(ev: Evidence, fitted: FittedModel) -> dict[str, float | None]:
-    """Held-out error per class: √(Σ residual² / Σ noise floor) on the second half of the repeats."""
+def class_errors(ev: Evidence, fitted: FittedModel, r2: np.ndarray, floor: np.ndarray) -> dict[str, float | None]:
+    """Held-out error per class: √(Σ residual² / Σ noise floor) on the second half of the repeats (``r2`` and
+    ``floor`` from :func:`heldout_terms`)."""
     px = fitted.pixels
     meas = ev.meas
-    r2, floor = heldout_terms(ev, fitted)
     out: dict[str, float | None] = {}
     for k, name in enumerate(CLASSES):
         m = ev.usable & (px.classes == k)

@@ -29,7 +29,7 @@ class PixelFit:
 
 
 #: Updates of the neighbours' pattern term per fit cycle, each followed by the pixel-local solve (until it
-#: moves by less than 1 % of the noise).
+#: moves by less than 0.1 % of the noise).
 SHIFT_UPDATES = 10
 
 
@@ -101,7 +101,6 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             mu = refit_local(dev, X_local, mu)
             # the neighbour term converges by a factor of about the light frames' share of a pattern's
             # information per update: a few cheap updates of it and the local solve (same derivatives) here, so
-            # that the expensive global step sees settled patterns
             # that the expensive global step sees settled patterns; an update that raises χ² (far from the fit,
             # where the globals have not settled) is undone and ends the updates
             chi_local = float(np.sum(w * (y - mu) ** 2))

@@ -35,12 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from scipy import ndimage
-
 from forensics.check.classes import QUANT_VAR, dark_groups
 from forensics.check.measurements import Group, Measurements
 from forensics.check.pixels import PixelData, VarianceBins
-from forensics.check.scene import KERNEL, edge_estimates
+from forensics.check.scene import kernel_estimate
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device, Effect, FrameContext, Stage
 from forensics.stats.censored import readout_moments
@@ -129,9 +127,7 @@ class Predictor:
             delta = np.where(pixels.defect_mask[r], 0.0, delta)
             if not np.any(np.abs(delta) > 1e-12):
                 continue
-            est = ndimage.correlate(delta, KERNEL, mode="reflect")
-            edge_estimates(delta, est)
-            out[r] = est
+            out[r] = kernel_estimate(delta)
         return out
 
     def predict(self, device: Device, pixels: PixelData, half: str = "a", clip: bool = True) -> np.ndarray:

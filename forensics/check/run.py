@@ -92,7 +92,8 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
     fitted = fit_model(ev, effects)
     px = fitted.pixels
     checks: list[CheckRow] = []
-    classes = class_errors(ev, fitted)
+    r2, floor = heldout_terms(ev, fitted)
+    classes = class_errors(ev, fitted, r2, floor)
     vals = [v for v in classes.values() if v is not None]
     gof_pixel, consistency = pixel_gof(ev, fitted, checks)
     covariates = covariate_checks(ev, fitted, checks)
@@ -114,7 +115,6 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
         classes = {k: None for k in classes}
         vals, err_var, err_growth = [], None, None
         gof_pixel = gof_var = gof_growth = gof_spatial = None
-    r2, floor = heldout_terms(ev, fitted)
     scored = ev.usable & np.isfinite(r2)
     heldout = None if unsettled else HeldOut(np.where(scored, r2, np.nan).astype(np.float32),
                                              floor.astype(np.float32), px.classes)

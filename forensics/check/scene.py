@@ -150,6 +150,15 @@ def _window_moments(image: np.ndarray, good: np.ndarray, ty: np.ndarray, tx: np.
     return m
 
 
+def kernel_estimate(image: np.ndarray, kernel: np.ndarray = KERNEL) -> np.ndarray:
+    """The scene kernel applied to ``image`` (reflecting at the edges; the scene kernel's clipped windows within
+    its half-width of the edge): the linear part of :func:`scene_estimate_and_fill`."""
+    est = ndimage.correlate(image, kernel, mode="reflect")
+    if kernel.shape[0] == SCENE_SIZE:
+        edge_estimates(image, est)
+    return est
+
+
 def scene_estimate_and_fill(image: np.ndarray, exclude: np.ndarray | None = None, kernel: np.ndarray = KERNEL,
                             passes: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """The light each pixel would show if it were typical, estimated from its neighbours, and the image as
@@ -168,9 +177,7 @@ def scene_estimate_and_fill(image: np.ndarray, exclude: np.ndarray | None = None
     est = img
     for _ in range(passes):
         filled = plane_fill(img, ~bad) if bad.any() else img
-        est = ndimage.correlate(filled, kernel, mode="reflect")
-        if kernel.shape[0] == SCENE_SIZE:
-            edge_estimates(filled, est)
+        est = kernel_estimate(filled, kernel)
         resid = img - est
         keep = resid[~bad]
         mad = robust_normal(keep)[1] if keep.size else 0.0

@@ -24,9 +24,9 @@ import numpy as np
 from forensics._shared.errors import ForensicsError, UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
+from forensics.check.classes import CLASSES
 from forensics.check.evidence import Evidence
 from forensics.check.measurements import Measurements, Region
-from forensics.check.classes import CLASSES
 from forensics.check.result import CheckResult
 from forensics.check.run import base_model, prepare, resolve_effects, run_check
 from forensics.io.dataset import Dataset
@@ -177,7 +177,6 @@ def improvement(before: CheckResult, after: CheckResult) -> str | None:
         if fall is not None and _finite(b) and _finite(a) and fall[0] > ERROR_SIGMAS * fall[1]:
             return f"error.classes.{cls} {b:.4g} → {a:.4g} (paired z {fall[0] / max(fall[1], 1e-300):.1f})"
     n_means = (after.data or {}).get("held_out_means") or {}
-    classes = before.error.get("classes") or {}
     worst = max((c for c in classes if _finite(classes[c])), key=lambda c: classes[c], default=None)
     pairs = [(f"error.{key}", before.error.get(key), after.error.get(key),
               pixel_error_tolerance(n_means.get(worst)) if key == "pixel" else tol) for key, tol in ERROR_TOL.items()]
