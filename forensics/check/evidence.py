@@ -99,9 +99,9 @@ class Evidence(EffectQuestions):
         if catalogue is None or catalogue is self.initial_catalogue:
             if self._initial_pixels is None:
                 self._initial_pixels = pixel_data(self.meas, self.rgroups, self.times, self.usable,
-                                                  self.initial_catalogue)
+                                                  self.initial_catalogue, ~self.censored)
             return self._initial_pixels
-        return pixel_data(self.meas, self.rgroups, self.times, self.usable, catalogue)
+        return pixel_data(self.meas, self.rgroups, self.times, self.usable, catalogue, ~self.censored)
 
     def redetect(self, device: Device) -> DefectCatalogue:
         """Detect the pixel classes again against the model's prediction for defect-free pixels, so that fixed

@@ -53,6 +53,9 @@ class FittedModel:
     variance_jac: np.ndarray | None
     spatial_null: dict[str, Any] | None
     sims: dict[str, Any] = field(default_factory=dict)
+    #: per (condition, pixel), the variance the fitted pixel-local patterns' estimation noise adds to a held-out
+    #: mean's prediction (what error² exceeds 1 by under the fitted model; None without such patterns)
+    estimation_var: np.ndarray | None = None
 
     @property
     def not_converged(self) -> list[str]:
@@ -70,10 +73,13 @@ def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24) -> 
     """Fit ``effects`` to the evidence (the objects given are left unchanged).
 
     Pixel classes come from defect detection; when the model has fixed patterns on normal pixels, detection is
-    repeated against the fitted model's prediction for defect-free pixels and the model refitted once.
+    repeated against the fitted model's prediction for defect-free pixels and the model refitted once — unless
+    the first fit did not settle (detection against a model that is still moving finds defects everywhere).
     """
     pixels = ev.pixels()
     fitted = _fit_once(ev, pixels, effects, max_cycles)
+    if fitted.not_converged:
+        return fitted
     device = fitted.device
     covers_normal = any(bool(np.any((p.blocks >= 0) & (pixels.classes[-1] == NORMAL)))
                         for e in device.model.effects if is_pixel(e) and e.null_values() for p in e.patterns(device))
@@ -137,7 +143,7 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
                                [p.random_effect for _, p in pix.local])
     effects, patterns = pattern_summaries(on_device(device, effects), effects, p_idx, pix.local, pix.local_var)
     patterns = with_sizes(ev, pixels, patterns, pix.local, effects, pix.nuisance)
-    shrink_random_effects(pixels, pix.local, pix.nuisance, patterns, effects)
+    shrink_random_effects(pix.pattern_weight, pix.local, pix.nuisance, patterns, effects)
     # ---------------------------------------------------------------- variance
     for i in n_idx:
         effects[i] = bespoke_fit(effects[i], ev)
@@ -155,7 +161,26 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         sims, spatial_null = ev.defects.simulate_null(arrivals, expected, ev.streams.stream(NULL_SIMULATIONS),
                                                       ev.streams.n_sim)
     return FittedModel(device, effects, pixels, pix.mu_a, mu_b, pix.nuisance, projector, params, patterns, expected,
-                       arrival_free, growth_jac, vpred, vjac, spatial_null, sims)
+                       arrival_free, growth_jac, vpred, vjac, spatial_null, sims,
+                       estimation_variance(pix.local, pix.nuisance, pix.local_var, patterns, effects))
+
+
+def estimation_variance(local: list, derivatives: list[np.ndarray], local_var: np.ndarray | None,
+                        patterns: list[PatternEstimate], effects: list[Effect]) -> np.ndarray | None:
+    """Σ_j X_j²·m_j: the variance the pixel-local patterns' estimation error adds to a prediction, with m_j a
+    pattern's mean square error at each pixel — its least-squares variance v, or for a shrunk random effect of
+    variance τ² the best linear predictor's v·τ²/(τ² + v) (patterns taken as independent)."""
+    if not local or local_var is None:
+        return None
+    rms = {(pe.effect, pe.name): pe.rms for pe in patterns}
+    out = np.zeros_like(derivatives[0])
+    for (i, p), x, v in zip(local, derivatives, local_var):
+        v = np.where(np.isfinite(v), v, 0.0)
+        if p.random_effect:
+            tau2 = rms.get((effects[i].key, p.name), 0.0) ** 2
+            v = v * tau2 / np.maximum(tau2 + v, 1e-300)
+        out += x * x * v[None]
+    return out
 
 
 def _log_scale(effect: Effect, name: str) -> bool:
@@ -249,13 +274,20 @@ def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], l
                 out.append(PatternEstimate(e.key, p.name, 0, 0.0, 0.0, p.hyper, None))
                 continue
             vals = p.values[used].astype(float)
-            ms = float(np.mean(vals**2))
             item = var_by_id.get((p.name, e.key))
             noise = 0.0
             if item is not None:
-                v = item[1][item[0] >= 0]
-                v = v[np.isfinite(v)]  # NaN: not determined at that pixel (collinear with another pattern)
-                noise = float(v.mean()) if v.size else 0.0
+                # NaN: not determined at that pixel (no data, or collinear with another pattern) or not scored
+                # (the border): the value there is not a measurement of the pattern
+                blocks, var = item
+                m = blocks >= 0
+                block_var = np.full(len(p.values), np.nan)
+                block_var[blocks[m]] = var[m]
+                measured = np.isfinite(block_var[used])
+                if measured.any():
+                    vals = vals[measured]
+                noise = float(block_var[used][measured].mean()) if measured.any() else 0.0
+            ms = float(np.mean(vals**2))
             rms = math.sqrt(max(ms - noise, 0.0))
             hyper_value = None
             if p.hyper:
@@ -284,7 +316,7 @@ def with_sizes(ev: Evidence, pixels: PixelData, patterns: list[PatternEstimate],
             if (pe.effect, pe.name) in sized else pe for pe in patterns]
 
 
-def shrink_random_effects(pixels: PixelData, local: list, derivatives: list[np.ndarray],
+def shrink_random_effects(weight: np.ndarray, local: list, derivatives: list[np.ndarray],
                           patterns: list[PatternEstimate], effects: list[Effect]) -> None:
     """Move the pixel-local patterns' fitted values, in place, to the best linear unbiased predictor: each
     random-effect pattern (:attr:`~forensics.sensor.model.Pattern.random_effect`) gets a zero-mean prior of
@@ -306,11 +338,11 @@ def shrink_random_effects(pixels: PixelData, local: list, derivatives: list[np.n
         if p.random_effect:
             tau = rms.get((effects[i].key, p.name), 0.0)
             precision[j] = 1.0 / tau**2 if tau > 0 else np.inf
-    coef = np.zeros((len(local), *pixels.weight.shape[1:]))
+    coef = np.zeros((len(local), *weight.shape[1:]))
     for j, (_, p) in enumerate(local):
         m = p.blocks >= 0
         coef[j][m] = p.values[p.blocks[m]]
-    shrunk = shrink_local(pixels.weight, derivatives, coef, precision)
+    shrunk = shrink_local(weight, derivatives, coef, precision)
     for j, (_, p) in enumerate(local):
         m = p.blocks >= 0
         p.values[p.blocks[m]] = shrunk[j][m].astype(p.values.dtype)

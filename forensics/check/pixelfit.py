@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 
 from forensics.check.evidence import Evidence
 from forensics.check.identify import bounded_step, estimates
@@ -26,6 +27,7 @@ class PixelFit:
     nuisance: list[np.ndarray]  #: derivatives of the prediction along the pixel-local patterns
     local: list[tuple[int, Pattern]]  #: (effect index, pattern) of the pixel-local patterns
     local_var: np.ndarray | None  #: variances of their fitted values
+    pattern_weight: np.ndarray  #: the weights they were solved with (:attr:`PixelData.pattern_weight`, less misfits)
 
 
 #: Updates of the neighbours' pattern term per fit cycle, each followed by the pixel-local solve (until it
@@ -40,6 +42,37 @@ def used_blocks(pat: Pattern) -> np.ndarray:
     seen = np.zeros(max(len(pat.values), int(blocks.max()) + 1 if blocks.size else 0), bool)
     seen[blocks] = True
     return np.flatnonzero(seen)
+
+
+#: A pixel that is never scored (the border of dark frames) whose own fit has a χ² beyond this upper-tail
+#: probability is not used for its patterns (an undetected defect there: detection looks at the interior only).
+UNSCORED_MISFIT_P = 1e-3
+
+
+def drop_unscored_misfits(wp: np.ndarray, w: np.ndarray, y: np.ndarray, mu: np.ndarray, local: list) -> bool:
+    """Zero, in place, the pattern weights and the pixel-local pattern values of the never-scored pixels whose
+    fit fails its χ² test (p < :data:`UNSCORED_MISFIT_P`): a defect there (a jump at its onset, an offset the
+    patterns cannot take) would otherwise set values that enter the neighbours' scene term.  The χ² is taken
+    relative to the never-scored pixels' median χ²/df (at least 1), so that early in a fit, when the global
+    parameters are still off and every pixel misfits alike, only the pixels that stand out go.  True if any."""
+    unscored = ~np.any(w > 0, axis=0) & np.any(wp > 0, axis=0)
+    if not unscored.any():
+        return False
+    chi = np.sum(wp * (y - mu) ** 2, axis=0)
+    df = np.sum(wp > 0, axis=0) - len(local)
+    fit = unscored & (df >= 1)
+    if not fit.any():
+        return False
+    scale = max(1.0, float(np.median(chi[fit] / df[fit])))
+    limit = np.where(df >= 1, scale * stats.chi2.isf(UNSCORED_MISFIT_P, np.maximum(df, 1)), np.inf)
+    bad = fit & (chi > limit)
+    if not bad.any():
+        return False
+    wp[:, bad] = 0.0
+    for _, p in local:
+        blk = p.blocks[bad]
+        p.values[blk[blk >= 0]] = 0.0
+    return True
 
 
 def pattern_derivative(predict, device: Device, pat: Pattern, base: np.ndarray) -> np.ndarray:
@@ -66,13 +99,17 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     """
     y = ev.meas.mean_a
     w = pixels.weight
+    # the pixel-local patterns are solved with the pattern weights (the border of dark frames too); χ² and the
+    # global parameters see the scored pixels only
+    # (a copy: misfitting never-scored pixels are dropped from it for good)
+    wp = w if pixels.pattern_weight is None else pixels.pattern_weight.copy()
     effects = list(effects)
 
     def predict(dev: Device, clip: bool = True) -> np.ndarray:
         return ev.predictor.predict(dev, pixels, "a", clip)
 
     def refit_local(dev: Device, X_local: list[np.ndarray], mu: np.ndarray) -> np.ndarray:
-        coef, _ = solve_local(w, X_local, y - mu, centred)
+        coef, _ = solve_local(wp, X_local, y - mu, centred)
         for (_, p), c in zip(local, coef):
             m = p.blocks >= 0
             p.values[p.blocks[m]] += c[m]
@@ -99,6 +136,8 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         if local:
             mu = refit_local(dev, X_local, mu)
+            if wp is not w and drop_unscored_misfits(wp, w, y, mu, local):
+                mu = predict(dev)
             # the neighbour term converges by a factor of about the light frames' share of a pattern's
             # information per update: a few cheap updates of it and the local solve (same derivatives) here, so
             # that the expensive global step sees settled patterns; an update that raises χ² (far from the fit,
@@ -145,11 +184,14 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     mu = ev.predictor.censor(dev, raw)
     if local:
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
-        _, local_var = solve_local(w, X_local, y - mu, centred)
+        _, local_var = solve_local(wp, X_local, y - mu, centred)
+        # pixels that are never scored (the border) carry their values for the neighbours' scene term only: not
+        # part of the patterns' summaries
+        local_var[:, ~np.any(w > 0, axis=0)] = np.nan
     if glob:
         extra = _pattern_mean_covariance(H, cross, local, centred, local_var)
         params += estimates(effects, glob, H, converged and np.isfinite(chi), extra)
-    return PixelFit(effects, mu, X_local, local, local_var)
+    return PixelFit(effects, mu, X_local, local, local_var, wp)
 
 
 def _pattern_mean_covariance(H: np.ndarray | None, cross: np.ndarray | None, local: list, centred: list[bool],

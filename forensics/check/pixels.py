@@ -98,6 +98,13 @@ class PixelData:
     var_a: np.ndarray
     weight: np.ndarray
     bins: VarianceBins
+    #: the weights the pixel-local patterns are solved with: :attr:`weight`, and in dark frames also the frame's
+    #: border (outside the scene estimate's reach, so not scored, but predicted from the chain alone: its patterns
+    #: are measured there, and the neighbours' scene estimates contain them)
+    pattern_weight: np.ndarray | None = None
+    #: per condition, the pixels whose reading did not enter the scene estimates (outliers the estimate filled,
+    #: beyond the known defects): their patterns are not in the neighbours' scene estimate
+    scene_excluded: np.ndarray | None = None
     #: incident light of the scene estimates per chain table (filled by the prediction; depends on the scenes)
     light_cache: dict[Any, Any] = field(default_factory=dict, compare=False, repr=False)
     #: arrays derived from the pixel data alone, computed on first use (e.g. :func:`wide_residuals`)
@@ -122,9 +129,10 @@ class PixelData:
 
 
 def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, usable: np.ndarray,
-               catalogue: DefectCatalogue) -> PixelData:
+               catalogue: DefectCatalogue, readable: np.ndarray | None = None) -> PixelData:
     """Pixel classes from a catalogue of detected defects, the scene estimates (defects masked), the noise
-    floor (normal pixels) and the variance bins."""
+    floor (normal pixels) and the variance bins.  ``readable`` (R, H, W): the pixels whose means are not
+    censored, border included (for the patterns' weights in dark frames; default ``usable``)."""
     epoch_classes = class_maps(catalogue, meas.shape, times)
     classes = np.stack([epoch_classes[g.epoch] for g in rgroups])
     # scene estimates per half; the known defects are filled in, and the fill values kept so that the
@@ -147,9 +155,15 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
     na = meas.n_a[:, None, None].astype(float)
     var_a = noise.floor * (1.0 + np.where(uses_scene(classes, rgroups), KERNEL_VAR, 0.0)) / na
     weight = np.where(usable, 1.0 / var_a, 0.0)
+    border_dark = dark_groups(rgroups)[:, None, None] & ~meas.interior[None]
+    if readable is not None:
+        border_dark &= readable
+    pattern_weight = np.where(usable | border_dark, 1.0 / var_a, 0.0) if border_dark.any() else weight
+    excluded = np.stack([((sa[r][1] != meas.mean_a[r]) | (sb[r][1] != meas.mean_b[r])) & ~defect_mask[r]
+                         for r in range(len(rgroups))])
     bins = variance_bins(meas, rgroups, usable, classes, scene=scene)
     return PixelData(catalogue, classes, defect_mask, np.stack([x[0] for x in sa]), np.stack([x[0] for x in sb]),
-                     fill_a, fill_b, refill_ops, noise, var_a, weight, bins)
+                     fill_a, fill_b, refill_ops, noise, var_a, weight, bins, pattern_weight, excluded)
 
 
 #: A pool of conditions with fewer pixels than this in the mask takes the slope pooled over all conditions.

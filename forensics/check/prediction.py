@@ -108,10 +108,10 @@ class Predictor:
         return ref
 
     def scene_shift(self, device: Device, pixels: PixelData) -> np.ndarray:
-        """Per repeated condition with light, K·δ: the scene kernel applied to the normal pixels' deviation from
-        a typical pixel at zero light (their additive fixed patterns; defects are refilled separately and count
-        0 here); zeros for dark frames, where nothing deviates, and for data without dark frames.
-        ``(R, H, W)``."""
+        """Per repeated condition with light, K·δ: the scene kernel applied to the pixels' deviation from a
+        typical pixel at zero light (their additive fixed patterns; a known defect's refill keeps its pixel's
+        patterns, so it counts too; outliers the scene estimate filled do not); zeros for dark frames, where
+        nothing deviates, and for data without dark frames.  ``(R, H, W)``."""
         out = np.zeros((len(self.rgroups), *self.shape))
         if not self.dark.any():
             # without frames predicted from the chain alone every frame sees a pixel's additive pattern through
@@ -124,7 +124,8 @@ class Predictor:
             if self.dark[r]:
                 continue
             delta = clean.mean_signal(zero, context(clean, g)) - typical.mean_signal(zero, context(typical, g))
-            delta = np.where(pixels.defect_mask[r], 0.0, delta)
+            if pixels.scene_excluded is not None:  # filled outliers: their reading is not in the estimate
+                delta = np.where(pixels.scene_excluded[r], 0.0, delta)
             if not np.any(np.abs(delta) > 1e-12):
                 continue
             out[r] = kernel_estimate(delta)

@@ -193,10 +193,18 @@ def improvement(before: CheckResult, after: CheckResult) -> str | None:
     return None
 
 
-def _problem(after: CheckResult) -> str | None:
-    """A fit that cannot be scored: a non-finite error where the model has one."""
+def _problem(before: CheckResult, after: CheckResult) -> str | None:
+    """A fit that cannot be scored: one that did not settle, a non-finite error where the model has one, or a
+    pixel class scored before and empty after (every pixel of it taken for a defect)."""
+    unsettled = [p.label for p in after.params if not p.converged]
+    if unsettled:
+        return f"the fit did not converge ({', '.join(unsettled)})"
     bad = [k for k in ERROR_TOL if after.error.get(k) is not None and not _finite(after.error[k])]
-    return f"the fit gave a non-finite error.{bad[0]}" if bad else None
+    if bad:
+        return f"the fit gave a non-finite error.{bad[0]}"
+    lost = [c for c, v in (before.error.get("classes") or {}).items()
+            if _finite(v) and not _finite((after.error.get("classes") or {}).get(c))]
+    return f"no {lost[0]} pixels are left to score" if lost else None
 
 
 def _try(ev: Evidence, effects: list[Effect], current: CheckResult, name: str) -> tuple[CheckResult | None, str]:
@@ -205,7 +213,7 @@ def _try(ev: Evidence, effects: list[Effect], current: CheckResult, name: str) -
         new = run_check(ev, [*effects, *resolve_effects([name])])
     except (ForensicsError, ArithmeticError, ValueError, RuntimeError) as exc:  # the fit reports a problem
         return None, f"adding {name} failed: {exc}"
-    problem = _problem(new)
+    problem = _problem(current, new)
     if problem:
         return None, f"adding {name}: {problem}"
     if improvement(current, new) is None:
