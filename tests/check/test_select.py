@@ -103,6 +103,31 @@ def test_max_steps_and_a_failing_fit(monkeypatch):
     assert sel.reason == sel_mod.NO_IMPROVEMENT and "adding prnu failed: singular" in sel.stopped
 
 
+def test_unsettled_fits_and_lost_pixel_classes_are_refused(monkeypatch):
+    """A step whose fit did not settle, or that left no normal pixel to score (detection against a diverged
+    model took every pixel for a defect: error only for 'stuck', gof 1), is not kept however its numbers look."""
+    from forensics.check.result import ParamEstimate
+
+    before = _result([], 1.04, ["shot_noise"], gof_pixel=1e-300)
+    before.error["classes"] = {"normal": 1.04, "partial": None, "stuck": None}
+    lost = _result([], 22.0, [], gof_pixel=1.0)
+    lost.error["classes"] = {"normal": None, "partial": None, "stuck": 22.0}
+    assert sel_mod._problem(before, lost) == "no normal pixels are left to score"
+    moving = _result([], 1.0, [], gof_pixel=0.5)
+    moving.params = [ParamEstimate("dark_current", "offset", -1187.0, None, "DN", converged=False)]
+    assert "did not converge (dark_current.offset)" in sel_mod._problem(before, moving)
+    fine = _result([], 1.0, [], gof_pixel=0.5)
+    fine.error["classes"] = {"normal": 1.0, "partial": None, "stuck": None}
+    assert sel_mod._problem(before, fine) is None
+
+    def run_check(ev, effects):
+        return before if len(effects) == len(base_model()) else lost
+
+    monkeypatch.setattr(sel_mod, "run_check", run_check)
+    sel = forward_select(None, base_model())
+    assert sel.added == [] and "no normal pixels are left" in sel.stopped
+
+
 def test_a_recovering_gof_counts_as_improvement():
     before = _result([], 1.0, ["clusters"], gof_pixel=1e-6)
     assert sel_mod.improvement(before, _result([], 1.0, [], gof_pixel=0.3)) == "gof.pixel 1e-06 → 0.3"
