@@ -66,6 +66,9 @@ def clipped_normal_moments(mu, sigma, lo=-np.inf, hi=np.inf) -> tuple[np.ndarray
 
 #: Above this σ (DN) the readout's moments come from the continuous normal's (see :func:`readout_moments`).
 SMOOTH_SIGMA = 2.0
+#: How far into a tail beyond a bound the closed form holds: while the log density falls by at most this much per
+#: level (z/σ ≤ TAIL_SLOPE); the next Euler–Maclaurin term is then ≲ TAIL_SLOPE³/720 of the density.
+TAIL_SLOPE = 0.25
 
 
 def readout_moments(mu, sigma, lo: int, hi: int, truncate: bool = False,
@@ -76,7 +79,7 @@ def readout_moments(mu, sigma, lo: int, hi: int, truncate: bool = False,
     within ``reach`` σ of clip(μ) are summed (the mass beyond is below Φ(−reach)).  ``truncate``: conditional
     on lo < y < hi.  (Ties of rint at half-integers have probability 0.)
 
-    For σ ≥ :data:`SMOOTH_SIGMA`, with clip(μ) no more than 1σ beyond a bound, the sum is replaced by the
+    For σ ≥ :data:`SMOOTH_SIGMA`, with μ no more than max(1, :data:`TAIL_SLOPE`·σ) σ beyond a bound, the sum is replaced by the
     continuous normal's moments on (lo+½, hi−½) plus the rounding's by Euler–Maclaurin (per period the rounding
     error integrates to −g′/12, which sums to boundary terms because the interval holds whole periods; its
     square adds 1/12).  The neglected terms are O(g‴): against the sum, ≤ 2·10⁻⁴ DN in the mean and ≤ 10⁻³·σ²
@@ -110,8 +113,11 @@ def _smooth_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
     a = (lo + 0.5 - mu) / sigma
     b = (hi - 0.5 - mu) / sigma
     p_in = _mass_between(a, b)
-    # the expansion needs a density smooth over a period at the bounds: not deep in a tail beyond one
-    ok = (sigma >= SMOOTH_SIGMA) & (a <= 1.0) & (b >= -1.0)
+    # the expansion needs a density smooth over a period at the bounds: in a tail z beyond a bound the log density
+    # falls by z/σ per level, so up to max(1, TAIL_SLOPE·σ) standard deviations (a wide noise: 5σ at σ = 20 DN,
+    # where the sum would cost O(σ) per value over every dark-frame pixel predicted below 0 during a fit)
+    tail = np.maximum(1.0, TAIL_SLOPE * sigma)
+    ok = (sigma >= SMOOTH_SIGMA) & (a <= tail) & (b >= -tail)
     a, b, p_in, m, s = a[ok], b[ok], p_in[ok], mu[ok], sigma[ok]
     fa, fb = _phi(a), _phi(b)
     r1 = (fa - fb) / p_in

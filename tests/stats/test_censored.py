@@ -63,8 +63,8 @@ def test_smooth_readout_equals_the_sum_over_levels(truncate):
 
     rng = np.random.default_rng(5)
     sigma = rng.uniform(1.0, 25.0, 4000)
-    # near both bounds, at them, beyond them and far inside
-    mu = np.concatenate([rng.uniform(-3, 8, 1500) * sigma[:1500], 255 - rng.uniform(-3, 8, 1500) * sigma[1500:3000],
+    # near both bounds, at them, beyond them (to 7σ: the closed form reaches max(1, σ/4) σ into a tail) and far inside
+    mu = np.concatenate([rng.uniform(-7, 8, 1500) * sigma[:1500], 255 - rng.uniform(-7, 8, 1500) * sigma[1500:3000],
                          rng.uniform(0, 255, 1000)])
     fast = readout_moments(mu, sigma, 0, 255, truncate=truncate)
     exact = censored._summed_readout(mu, sigma, 0, 255, truncate, reach=12.0)
