@@ -99,9 +99,9 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     """
     y = ev.meas.mean_a
     w = pixels.weight
-    # the pixel-local patterns are solved with the pattern weights (the border of dark frames too); χ² and the
-    # global parameters see the scored pixels only
-    # (a copy: misfitting never-scored pixels are dropped from it for good)
+    # the pixel-local patterns are solved with the pattern weights (the border of dark frames too; a copy, from
+    # which misfitting never-scored pixels are dropped for good); χ² and the global parameters see the scored
+    # pixels only
     wp = w if pixels.pattern_weight is None else pixels.pattern_weight.copy()
     effects = list(effects)
 

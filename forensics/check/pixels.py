@@ -155,9 +155,8 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
     na = meas.n_a[:, None, None].astype(float)
     var_a = noise.floor * (1.0 + np.where(uses_scene(classes, rgroups), KERNEL_VAR, 0.0)) / na
     weight = np.where(usable, 1.0 / var_a, 0.0)
-    border_dark = dark_groups(rgroups)[:, None, None] & ~meas.interior[None]
-    if readable is not None:
-        border_dark &= readable
+    border_dark = dark_groups(rgroups)[:, None, None] & ~meas.interior[None] & (usable if readable is None
+                                                                                else readable)
     pattern_weight = np.where(usable | border_dark, 1.0 / var_a, 0.0) if border_dark.any() else weight
     excluded = np.stack([((sa[r][1] != meas.mean_a[r]) | (sb[r][1] != meas.mean_b[r])) & ~defect_mask[r]
                          for r in range(len(rgroups))])
