@@ -286,7 +286,7 @@ def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], l
                 measured = np.isfinite(block_var[used])
                 if measured.any():
                     vals = vals[measured]
-                noise = float(block_var[used][measured].mean()) if measured.any() else 0.0
+                    noise = float(block_var[used][measured].mean())
             ms = float(np.mean(vals**2))
             rms = math.sqrt(max(ms - noise, 0.0))
             hyper_value = None

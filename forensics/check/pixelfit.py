@@ -102,7 +102,8 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     # the pixel-local patterns are solved with the pattern weights (the border of dark frames too; a copy, from
     # which misfitting never-scored pixels are dropped for good); χ² and the global parameters see the scored
     # pixels only
-    wp = w if pixels.pattern_weight is None else pixels.pattern_weight.copy()
+    has_unscored = pixels.pattern_weight is not w
+    wp = pixels.pattern_weight.copy() if has_unscored else w
     effects = list(effects)
 
     def predict(dev: Device, clip: bool = True) -> np.ndarray:
@@ -136,7 +137,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         if local:
             mu = refit_local(dev, X_local, mu)
-            if wp is not w and drop_unscored_misfits(wp, w, y, mu, local):
+            if has_unscored and drop_unscored_misfits(wp, w, y, mu, local):
                 mu = predict(dev)
             # the neighbour term converges by a factor of about the light frames' share of a pattern's
             # information per update: a few cheap updates of it and the local solve (same derivatives) here, so

@@ -101,10 +101,11 @@ class PixelData:
     #: the weights the pixel-local patterns are solved with: :attr:`weight`, and in dark frames also the frame's
     #: border (outside the scene estimate's reach, so not scored, but predicted from the chain alone: its patterns
     #: are measured there, and the neighbours' scene estimates contain them)
-    pattern_weight: np.ndarray | None = None
+    #: (the same array as :attr:`weight` when there is no such border)
+    pattern_weight: np.ndarray
     #: per condition, the pixels whose reading did not enter the scene estimates (outliers the estimate filled,
     #: beyond the known defects): their patterns are not in the neighbours' scene estimate
-    scene_excluded: np.ndarray | None = None
+    scene_excluded: np.ndarray
     #: incident light of the scene estimates per chain table (filled by the prediction; depends on the scenes)
     light_cache: dict[Any, Any] = field(default_factory=dict, compare=False, repr=False)
     #: arrays derived from the pixel data alone, computed on first use (e.g. :func:`wide_residuals`)

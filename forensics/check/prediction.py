@@ -124,8 +124,7 @@ class Predictor:
             if self.dark[r]:
                 continue
             delta = clean.mean_signal(zero, context(clean, g)) - typical.mean_signal(zero, context(typical, g))
-            if pixels.scene_excluded is not None:  # filled outliers: their reading is not in the estimate
-                delta = np.where(pixels.scene_excluded[r], 0.0, delta)
+            delta = np.where(pixels.scene_excluded[r], 0.0, delta)  # filled outliers: not in the estimate
             if not np.any(np.abs(delta) > 1e-12):
                 continue
             out[r] = kernel_estimate(delta)
