@@ -1,13 +1,13 @@
 """The pixel channel's fit: fixed patterns and global parameters on the first half of the repeats."""
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
 
-from forensics.check.coupled import coupled_forward, coupled_step
 from forensics.check.evidence import Evidence
 from forensics.check.identify import bounded_step, estimates
 from forensics.check.params import on_device, with_clipped_param, with_param
@@ -28,6 +28,11 @@ class PixelFit:
     local: list[tuple[int, Pattern]]  #: (effect index, pattern) of the pixel-local patterns
     local_var: np.ndarray | None  #: variances of their fitted values
     pattern_weight: np.ndarray  #: the weights they were solved with (:attr:`PixelData.pattern_weight`, less misfits)
+
+
+#: Updates of the neighbours' pattern term per fit cycle, each followed by the pixel-local solve (until it
+#: moves by less than 0.1 % of the noise).
+SHIFT_UPDATES = 10
 
 
 def used_blocks(pat: Pattern) -> np.ndarray:
@@ -104,24 +109,12 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     def predict(dev: Device, clip: bool = True) -> np.ndarray:
         return ev.predictor.predict(dev, pixels, "a", clip)
 
-    def consistent(dev: Device) -> np.ndarray:
-        """The prediction with the neighbours' pattern term of ``dev``'s current patterns."""
-        if pats:
-            dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
-        return predict(dev)
-
-    coupling: tuple[list[np.ndarray], np.ndarray] | None = None  # (Z, F) of the cycle, see coupled_step
-
     def refit_local(dev: Device, X_local: list[np.ndarray], mu: np.ndarray) -> np.ndarray:
-        """One Gauss–Newton step of the pixel-local patterns from the consistent prediction ``mu``: jointly
-        with the neighbours' term where dark frames make it matter, else pixel by pixel."""
-        if coupling is not None:
-            return _coupled_refit(consistent, dev, local, X_local, *coupling, wp, y, mu, centred)
         coef, _ = solve_local(wp, X_local, y - mu, centred)
         for (_, p), c in zip(local, coef):
             m = p.blocks >= 0
             p.values[p.blocks[m]] += c[m]
-        return consistent(dev)
+        return predict(dev)
 
     dev = on_device(device, effects)
     pats = [(i, p) for i in pixel_idx for p in effects[i].patterns(dev)]
@@ -130,6 +123,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     other = [(i, p) for i, p in pats if not p.pixel_local]
     glob = [(i, n) for i in pixel_idx for n in effects[i].free_params()]
     chi_prev = np.inf
+    shift_tol = 1e-3 * math.sqrt(float(np.median(pixels.var_a[w > 0]))) if np.any(w > 0) else 0.0
     X_local: list[np.ndarray] = []
     local_var = None
     H = cross = None
@@ -142,11 +136,29 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         # -- pixel-local patterns, jointly per pixel
         X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
         if local:
-            coupling = _coupling(ev.predictor, pixels, dev, predict, local, raw) if ev.predictor.dark.any() \
-                else None
             mu = refit_local(dev, X_local, mu)
             if has_unscored and drop_unscored_misfits(wp, w, y, mu, local):
-                mu = consistent(dev)
+                mu = predict(dev)
+            # the neighbour term converges by a factor of about the light frames' share of a pattern's
+            # information per update: a few cheap updates of it and the local solve (same derivatives) here, so
+            # that the expensive global step sees settled patterns; an update that raises χ² (far from the fit,
+            # where the globals have not settled) is undone and ends the updates
+            chi_local = float(np.sum(w * (y - mu) ** 2))
+            for _ in range(SHIFT_UPDATES):
+                old_shift = dev.state[SCENE_SHIFT]
+                new = ev.predictor.scene_shift(dev, pixels)
+                if not new.size or float(np.max(np.abs(new - old_shift))) <= shift_tol:
+                    break
+                saved = [p.values.copy() for _, p in local]
+                dev.state[SCENE_SHIFT] = new
+                trial = refit_local(dev, X_local, predict(dev))
+                chi_trial = float(np.sum(w * (y - trial) ** 2))
+                if chi_trial > chi_local:
+                    for (_, p), v in zip(local, saved):
+                        p.values[...] = v
+                    dev.state[SCENE_SHIFT] = old_shift
+                    break
+                mu, chi_local = trial, chi_trial
         # -- other patterns, block by block
         for _, p in other:
             x = pattern_derivative(predict, dev, p, predict(dev, clip=False))
@@ -155,13 +167,13 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             num = np.bincount(blk, (x * w * (y - mu))[m], minlength=len(p.values))
             den = np.bincount(blk, (x * x * w)[m], minlength=len(p.values))
             p.values[...] += np.where(den > 0, num / np.where(den > 0, den, 1), 0.0)
-            mu = consistent(dev)
+            mu = predict(dev)
         # -- global parameters: profiled Gauss–Newton with step halving
         if glob:
-            effects, H, cross = _global_step(predict, consistent, refit_local, device, effects, glob, pats, local,
-                                             X_local, y, w, mu, centred, coupling, wp)
+            effects, H, cross = _global_step(predict, refit_local, device, effects, glob, pats, local, X_local, y,
+                                             w, mu, centred)
             dev = on_device(device, effects)
-        mu = consistent(dev)  # χ² of the patterns' own neighbour term: the objective every step decreases
+        mu = predict(dev)
         chi = float(np.sum(w * (y - mu) ** 2))
         if np.isfinite(chi_prev) and abs(chi_prev - chi) <= 1e-6 * max(chi, 1.0) and cycle >= 1:
             converged = True
@@ -181,51 +193,6 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         extra = _pattern_mean_covariance(H, cross, local, centred, local_var)
         params += estimates(effects, glob, H, converged and np.isfinite(chi), extra)
     return PixelFit(effects, mu, X_local, local, local_var, wp)
-
-
-def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list,
-              raw: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-    """The derivatives that couple the pixels through their neighbours' scene estimates
-    (:func:`~forensics.check.coupled.coupled_step`): per pixel-local pattern Z, the pixels' deviation at zero
-    light by their own values; F, the prediction by the neighbour term (light frames).  ``dev``'s neighbour
-    term must be consistent with its patterns."""
-    base = predictor.deviation(dev, pixels)
-    Z = []
-    for _, p in local:
-        used = used_blocks(p)
-        eps = 1e-3 * (1.0 + float(np.max(np.abs(p.values[used])))) if used.size else 1.0
-        p.values[used] += eps
-        Z.append((predictor.deviation(dev, pixels) - base) / eps * (p.blocks >= 0)[None])
-        p.values[used] -= eps
-    shift = dev.state[SCENE_SHIFT]
-    light = ~predictor.dark[:, None, None]
-    h = 1e-2  # DN: the prediction is piecewise linear in the scene through the chain's tabulated inverse
-    dev.state[SCENE_SHIFT] = shift + h * light
-    F = (predict(dev, clip=False) - raw) / h * light
-    dev.state[SCENE_SHIFT] = shift
-    return Z, F
-
-
-def _coupled_refit(consistent, dev: Device, local: list, X_local: list[np.ndarray], Z: list[np.ndarray],
-                   F: np.ndarray, wp: np.ndarray, y: np.ndarray, mu: np.ndarray, centred: list[bool]) -> np.ndarray:
-    """One joint Gauss–Newton step of the pixel-local patterns with their neighbours' scene term
-    (:func:`~forensics.check.coupled.coupled_step`) from the consistent prediction ``mu``, halved (at most 4
-    times) until χ² does not increase (else the patterns stay); returns the consistent prediction."""
-    step = coupled_step(X_local, Z, F, wp, y - mu, centred)
-    chi_old = float(np.sum(wp * (y - mu) ** 2))
-    saved = [p.values.copy() for _, p in local]
-    fraction = 1.0
-    for _ in range(5):
-        for (_, p), d in zip(local, step.delta):
-            m = p.blocks >= 0
-            p.values[p.blocks[m]] += (fraction * d[m]).astype(p.values.dtype)
-        trial = consistent(dev)
-        if float(np.sum(wp * (y - trial) ** 2)) <= chi_old:
-            return trial
-        for (_, p), v in zip(local, saved):
-            p.values[...] = v
-        fraction /= 2
-    return consistent(dev)
 
 
 def _pattern_mean_covariance(H: np.ndarray | None, cross: np.ndarray | None, local: list, centred: list[bool],
@@ -254,20 +221,14 @@ def _pattern_mean_covariance(H: np.ndarray | None, cross: np.ndarray | None, loc
     return hinv @ cross @ np.diag(spread) @ cross.T @ hinv
 
 
-def _global_step(predict, consistent, refit_local, device: Device, effects: list[Effect],
-                 glob: list[tuple[int, str]], pats: list[tuple[int, Pattern]], local: list,
-                 X_local: list[np.ndarray], y: np.ndarray,
-                 w: np.ndarray, mu: np.ndarray, centred: list[bool],
-                 coupling: tuple[list[np.ndarray], np.ndarray] | None = None,
-                 wp: np.ndarray | None = None) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
+def _global_step(predict, refit_local, device: Device, effects: list[Effect], glob: list[tuple[int, str]],
+                 pats: list[tuple[int, Pattern]], local: list, X_local: list[np.ndarray], y: np.ndarray,
+                 w: np.ndarray, mu: np.ndarray,
+                 centred: list[bool]) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
     """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
-    does not increase (at most 8 times; else the old values stay).  χ² is that of the consistent prediction
-    (``consistent``: the neighbours' pattern term of the trial's own patterns), so every accepted step lowers the
-    objective itself; the derivatives hold the neighbour term fixed.  Returns the effects, the Gauss–Newton
+    does not increase (at most 8 times; else the old values stay).  Returns the effects, the Gauss–Newton
     matrix (for standard errors) and the parameters' cross information with the random-effect patterns'
-    common modes (None without such patterns).  ``coupling``: the cycle's (Z, F) when the patterns are solved
-    jointly (:func:`_coupling`): the parameters are then profiled against that joint solve (with the pattern
-    weights ``wp``), else pixel by pixel."""
+    common modes (None without such patterns)."""
     dev = on_device(device, effects)
     r = y - mu
     raw = predict(dev, clip=False)
@@ -280,15 +241,8 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         if v + d > hi:
             d = -d
         moved = on_device(device, with_param(effects, i, n, v + d))
-        column = (predict(moved, clip=False) - raw) / d
-        if coupling is not None:  # profiled against the joint pattern solve, neighbours' term included
-            Z, F = coupling
-            delta = coupled_step(X_local, Z, F, wp, column, centred).delta
-            J.append((column - coupled_forward(X_local, Z, F, delta)) * np.sqrt(w))
-        else:
-            J.append(proj.project(column * np.sqrt(w)))
-    # the residual is already least squares in the patterns (the joint solve), else projected pixel by pixel
-    zr = r * np.sqrt(w) if coupling is not None else proj.project(r * np.sqrt(w))
+        J.append(proj.project((predict(moved, clip=False) - raw) / d * np.sqrt(w)))
+    zr = proj.project(r * np.sqrt(w))
     H = np.array([[np.sum(a * b) for b in J] for a in J])
     # cross information with the random-effect patterns' common modes (a uniform shift of all their values)
     modes = [proj.project(x * np.sqrt(w)) for x, c in zip(X_local, centred) if c]
@@ -305,7 +259,7 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         for (i, n), v, s in zip(glob, old, step):
             trial = with_clipped_param(trial, i, n, v + s)
         tdev = on_device(device, trial)
-        mu_new = consistent(tdev)
+        mu_new = predict(tdev)
         if local:
             mu_new = refit_local(tdev, X_local, mu_new)
         chi_new = float(np.sum(w * (y - mu_new) ** 2))

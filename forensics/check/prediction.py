@@ -109,20 +109,9 @@ class Predictor:
 
     def scene_shift(self, device: Device, pixels: PixelData) -> np.ndarray:
         """Per repeated condition with light, K·δ: the scene kernel applied to the pixels' deviation from a
-        typical pixel at zero light (:meth:`deviation`); zeros for dark frames, where nothing deviates, and for
-        data without dark frames.  ``(R, H, W)``."""
-        delta = self.deviation(device, pixels)
-        out = np.zeros_like(delta)
-        for r in range(len(self.rgroups)):
-            if np.any(np.abs(delta[r]) > 1e-12):
-                out[r] = kernel_estimate(delta[r])
-        return out
-
-    def deviation(self, device: Device, pixels: PixelData) -> np.ndarray:
-        """Per repeated condition with light, δ: the pixels' deviation from a typical pixel at zero light (their
-        additive fixed patterns; a known defect's refill keeps its pixel's patterns, so it counts too; outliers
-        the scene estimate filled do not) — what the scene estimates average into :meth:`scene_shift`.  Zeros
-        for dark frames and for data without dark frames.  ``(R, H, W)``."""
+        typical pixel at zero light (their additive fixed patterns; a known defect's refill keeps its pixel's
+        patterns, so it counts too; outliers the scene estimate filled do not); zeros for dark frames, where
+        nothing deviates, and for data without dark frames.  ``(R, H, W)``."""
         out = np.zeros((len(self.rgroups), *self.shape))
         if not self.dark.any():
             # without frames predicted from the chain alone every frame sees a pixel's additive pattern through
@@ -135,7 +124,10 @@ class Predictor:
             if self.dark[r]:
                 continue
             delta = clean.mean_signal(zero, context(clean, g)) - typical.mean_signal(zero, context(typical, g))
-            out[r] = np.where(pixels.scene_excluded[r], 0.0, delta)  # filled outliers: not in the estimate
+            delta = np.where(pixels.scene_excluded[r], 0.0, delta)  # filled outliers: not in the estimate
+            if not np.any(np.abs(delta) > 1e-12):
+                continue
+            out[r] = kernel_estimate(delta)
         return out
 
     def predict(self, device: Device, pixels: PixelData, half: str = "a", clip: bool = True) -> np.ndarray:
