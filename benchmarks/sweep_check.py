@@ -34,7 +34,7 @@ import os
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -133,8 +133,7 @@ def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_ou
 
     jobs = [(c, s) for c in combos for s in range(1, seeds + 1)]
     started = time.perf_counter()
-    with ProcessPoolExecutor(workers) as pool:
-        runs = list(pool.map(run_auto, jobs))
+    runs = run_logged(run_auto, jobs, workers, json_out)
     elapsed = time.perf_counter() - started
     print(f"# Forward selection (--auto): {len(combos)} combination(s) × {seeds} seeds "
           f"({elapsed:.0f} s on {workers} worker(s))\n")
@@ -165,6 +164,23 @@ def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_ou
     if json_out:
         Path(json_out).write_text(json.dumps(runs, indent=1, default=float))
     return 0
+
+
+def run_logged(fn, jobs: list, workers: int, json_out: str | None) -> list[dict]:
+    """``fn`` over ``jobs`` in ``workers`` processes, in job order; each finished run is also appended at once to
+    ``<json_out>.partial.jsonl`` (a sweep takes hours: a stopped one keeps what it finished)."""
+    log = Path(str(json_out) + ".partial.jsonl") if json_out else None
+    if log:
+        log.write_text("")
+    runs: list = [None] * len(jobs)
+    with ProcessPoolExecutor(workers) as pool:
+        futures = {pool.submit(fn, job): k for k, job in enumerate(jobs)}
+        for fut in as_completed(futures):
+            runs[futures[fut]] = fut.result()
+            if log:
+                with log.open("a") as fh:
+                    fh.write(json.dumps(runs[futures[fut]], default=float) + "\n")
+    return runs
 
 
 def run_guarded(job: tuple[str, int, str]) -> dict:
@@ -262,8 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     jobs = [(e, s, c) for c in convs for e in effects for s in range(1, args.seeds + 1)] + \
         [("none", s, c) for c in convs for s in range(1, args.null + 1)]
     started = time.perf_counter()
-    with ProcessPoolExecutor(args.workers) as pool:
-        runs = list(pool.map(run_guarded, jobs))
+    runs = run_logged(run_guarded, jobs, args.workers, args.json)
     elapsed = time.perf_counter() - started
     header = (f"# Model-check sweep: {len(effects)} candidate(s) × {args.seeds} seeds + {args.null} null seeds "
               f"({elapsed:.0f} s on {args.workers} worker(s))")
