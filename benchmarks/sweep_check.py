@@ -39,6 +39,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from forensics._shared.atomic import write_text  # noqa: E402 — after the path set-up
+
 PIXEL_EFFECTS = ("prnu", "dark_current", "gain", "nonlinearity", "dsnu")
 
 
@@ -162,7 +164,7 @@ def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_ou
             print(f"- {r['combo']}, seed {r['seed']}: {path}; stopped: {r['stopped']}")
     print(f"\nmean time per dataset (generate + forward selection): {np.mean([r['seconds'] for r in runs]):.1f} s")
     if json_out:
-        Path(json_out).write_text(json.dumps(runs, indent=1, default=float))
+        write_text(json_out, json.dumps(runs, indent=1, default=float), force=True)
     return 0
 
 
@@ -298,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"\nmean time per dataset (generate + checks): {np.mean([r['seconds'] for r in runs]):.1f} s")
     if args.json:
-        Path(args.json).write_text(json.dumps(runs, indent=1, default=float))
+        write_text(args.json, json.dumps(runs, indent=1, default=float), force=True)
     return 0
 
 
