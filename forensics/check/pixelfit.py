@@ -1,18 +1,18 @@
 """The pixel channel's fit: fixed patterns and global parameters on the first half of the repeats."""
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
 
+from forensics.check.coupled import coupled_forward, coupled_step
 from forensics.check.evidence import Evidence
 from forensics.check.identify import bounded_step, estimates
 from forensics.check.params import on_device, with_clipped_param, with_param
 from forensics.check.pixels import PixelData
-from forensics.check.prediction import SCENE_SHIFT
+from forensics.check.prediction import FROZEN_REFILL, SCENE_SHIFT
 from forensics.check.projection import PixelProjector, solve_local
 from forensics.check.result import ParamEstimate
 from forensics.sensor.model import Device, Effect, Pattern
@@ -28,11 +28,6 @@ class PixelFit:
     local: list[tuple[int, Pattern]]  #: (effect index, pattern) of the pixel-local patterns
     local_var: np.ndarray | None  #: variances of their fitted values
     pattern_weight: np.ndarray  #: the weights they were solved with (:attr:`PixelData.pattern_weight`, less misfits)
-
-
-#: Updates of the neighbours' pattern term per fit cycle, each followed by the pixel-local solve (until it
-#: moves by less than 0.1 % of the noise).
-SHIFT_UPDATES = 10
 
 
 def used_blocks(pat: Pattern) -> np.ndarray:
@@ -75,16 +70,48 @@ def drop_unscored_misfits(wp: np.ndarray, w: np.ndarray, y: np.ndarray, mu: np.n
     return True
 
 
-def pattern_derivative(predict, device: Device, pat: Pattern, base: np.ndarray) -> np.ndarray:
+def recentre(local: list, centred: list[bool]) -> bool:
+    """Shift, in place, each random-effect pattern to a zero mean over its pixels; True if any moved.
+
+    The least-squares steps keep the sum of such a pattern's values (their common mode belongs to a global
+    parameter), so whatever moved it otherwise stays: values zeroed at dropped pixels (refitted the next cycle,
+    perhaps dropped again) drifted the DSNU's mean by 4 DN over a fit, the dark offset following it.  The
+    global step that follows takes the shift up."""
+    moved = False
+    for (_, p), c in zip(local, centred):
+        if not c:
+            continue
+        used = used_blocks(p)
+        if used.size < 2:
+            continue
+        vals = p.values[used]
+        mean = float(np.mean(vals, dtype=np.float64))
+        if abs(mean) > 1e-6 * max(float(np.std(vals, dtype=np.float64)), 1e-30):
+            p.values[used] = vals - np.asarray(mean, vals.dtype)
+            moved = True
+    return moved
+
+
+def pattern_derivative(predict, device: Device, pat: Pattern, base: np.ndarray,
+                       refill: np.ndarray | None = None) -> np.ndarray:
     """∂μ/∂value of each pixel's own block, all blocks perturbed at once (zero outside the blocks: a block's
-    influence on other pixels, e.g. through their scene estimate, is not a parameter of theirs)."""
+    influence on other pixels, e.g. through their scene estimate, is not a parameter of theirs).
+
+    ``refill``: the defects' current refills (:meth:`~forensics.check.prediction.Predictor.refill`), held
+    fixed while perturbing — else a pixel next to a known defect reads the defect's change through its scene
+    estimate as its own (five times its true derivative after a stuck pixel's onset)."""
     used = used_blocks(pat)
     if used.size == 0:
         return np.zeros_like(base)
     delta = 1e-3 * (1.0 + float(np.max(np.abs(pat.values[used]))))
     pat.values[used] += delta
-    x = (predict(device, clip=False) - base) / delta
-    pat.values[used] -= delta
+    if refill is not None:
+        device.state[FROZEN_REFILL] = refill
+    try:
+        x = (predict(device, clip=False) - base) / delta
+    finally:
+        device.state.pop(FROZEN_REFILL, None)
+        pat.values[used] -= delta
     return x * (pat.blocks >= 0)[None]
 
 
@@ -100,8 +127,10 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     y = ev.meas.mean_a
     w = pixels.weight
     # the pixel-local patterns are solved with the pattern weights (the border of dark frames too; a copy, from
-    # which misfitting never-scored pixels are dropped for good); χ² and the global parameters see the scored
-    # pixels only
+    # which misfitting never-scored pixels are dropped — afresh every cycle until χ² settles: early on the global
+    # parameters are off, e.g. an ISO gain still at its null, and a pixel with a large offset misfits through no
+    # fault of its own; afterwards for good, so that a pixel on the edge of the test cannot keep χ² moving);
+    # χ² and the global parameters see the scored pixels only
     has_unscored = pixels.pattern_weight is not w
     wp = pixels.pattern_weight.copy() if has_unscored else w
     effects = list(effects)
@@ -109,12 +138,26 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     def predict(dev: Device, clip: bool = True) -> np.ndarray:
         return ev.predictor.predict(dev, pixels, "a", clip)
 
+    def consistent(dev: Device) -> np.ndarray:
+        """The prediction with the neighbours' pattern term of ``dev``'s current patterns."""
+        if pats:
+            dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
+        return predict(dev)
+
+    coupling: tuple[list[np.ndarray], np.ndarray] | None = None  # (Z, F) of the cycle, see coupled_step
+
     def refit_local(dev: Device, X_local: list[np.ndarray], mu: np.ndarray) -> np.ndarray:
+        """One Gauss–Newton step of the pixel-local patterns from the consistent prediction ``mu``: jointly
+        with the neighbours' term where dark frames make it matter, else pixel by pixel."""
+        if recentre(local, centred):
+            mu = consistent(dev)
+        if coupling is not None:
+            return _coupled_refit(consistent, dev, local, X_local, *coupling, wp, y, mu, centred)
         coef, _ = solve_local(wp, X_local, y - mu, centred)
         for (_, p), c in zip(local, coef):
             m = p.blocks >= 0
             p.values[p.blocks[m]] += c[m]
-        return predict(dev)
+        return consistent(dev)
 
     dev = on_device(device, effects)
     pats = [(i, p) for i in pixel_idx for p in effects[i].patterns(dev)]
@@ -123,42 +166,27 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     other = [(i, p) for i, p in pats if not p.pixel_local]
     glob = [(i, n) for i in pixel_idx for n in effects[i].free_params()]
     chi_prev = np.inf
-    shift_tol = 1e-3 * math.sqrt(float(np.median(pixels.var_a[w > 0]))) if np.any(w > 0) else 0.0
     X_local: list[np.ndarray] = []
     local_var = None
     H = cross = None
     converged = False
+    settled = False  # χ² moved by less than 0.1 % in a cycle: from then on the dropped pixels stay dropped
     for cycle in range(max_cycles):
+        if has_unscored and not settled:
+            wp[...] = pixels.pattern_weight
         if pats:  # the neighbours' additive patterns in the scene estimates, frozen for this cycle
             dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
         raw = predict(dev, clip=False)  # derivatives ignore the clipping (clipped values are censored)
         mu = ev.predictor.censor(dev, raw)  # residuals: what the data show near 0 and full scale
         # -- pixel-local patterns, jointly per pixel
-        X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
+        refill = ev.predictor.refill(dev, pixels) if local and pixels.defect_mask.any() else None
+        X_local = [pattern_derivative(predict, dev, p, raw, refill) for _, p in local]
         if local:
+            coupling = _coupling(ev.predictor, pixels, dev, predict, local, raw, refill) \
+                if ev.predictor.dark.any() else None
             mu = refit_local(dev, X_local, mu)
             if has_unscored and drop_unscored_misfits(wp, w, y, mu, local):
-                mu = predict(dev)
-            # the neighbour term converges by a factor of about the light frames' share of a pattern's
-            # information per update: a few cheap updates of it and the local solve (same derivatives) here, so
-            # that the expensive global step sees settled patterns; an update that raises χ² (far from the fit,
-            # where the globals have not settled) is undone and ends the updates
-            chi_local = float(np.sum(w * (y - mu) ** 2))
-            for _ in range(SHIFT_UPDATES):
-                old_shift = dev.state[SCENE_SHIFT]
-                new = ev.predictor.scene_shift(dev, pixels)
-                if not new.size or float(np.max(np.abs(new - old_shift))) <= shift_tol:
-                    break
-                saved = [p.values.copy() for _, p in local]
-                dev.state[SCENE_SHIFT] = new
-                trial = refit_local(dev, X_local, predict(dev))
-                chi_trial = float(np.sum(w * (y - trial) ** 2))
-                if chi_trial > chi_local:
-                    for (_, p), v in zip(local, saved):
-                        p.values[...] = v
-                    dev.state[SCENE_SHIFT] = old_shift
-                    break
-                mu, chi_local = trial, chi_trial
+                mu = consistent(dev)
         # -- other patterns, block by block
         for _, p in other:
             x = pattern_derivative(predict, dev, p, predict(dev, clip=False))
@@ -167,24 +195,26 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             num = np.bincount(blk, (x * w * (y - mu))[m], minlength=len(p.values))
             den = np.bincount(blk, (x * x * w)[m], minlength=len(p.values))
             p.values[...] += np.where(den > 0, num / np.where(den > 0, den, 1), 0.0)
-            mu = predict(dev)
+            mu = consistent(dev)
         # -- global parameters: profiled Gauss–Newton with step halving
         if glob:
-            effects, H, cross = _global_step(predict, refit_local, device, effects, glob, pats, local, X_local, y,
-                                             w, mu, centred)
+            effects, H, cross = _global_step(predict, consistent, refit_local, device, effects, glob, pats, local,
+                                             X_local, y, w, mu, centred, coupling, wp)
             dev = on_device(device, effects)
-        mu = predict(dev)
+        mu = consistent(dev)  # χ² of the patterns' own neighbour term: the objective every step decreases
         chi = float(np.sum(w * (y - mu) ** 2))
         if np.isfinite(chi_prev) and abs(chi_prev - chi) <= 1e-6 * max(chi, 1.0) and cycle >= 1:
             converged = True
             break
+        settled = settled or (np.isfinite(chi_prev) and abs(chi_prev - chi) <= 1e-3 * max(chi, 1.0))
         chi_prev = chi
     if pats:
         dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
     raw = predict(dev, clip=False)
     mu = ev.predictor.censor(dev, raw)
     if local:
-        X_local = [pattern_derivative(predict, dev, p, raw) for _, p in local]
+        refill = ev.predictor.refill(dev, pixels) if pixels.defect_mask.any() else None
+        X_local = [pattern_derivative(predict, dev, p, raw, refill) for _, p in local]
         _, local_var = solve_local(wp, X_local, y - mu, centred)
         # pixels that are never scored (the border) carry their values for the neighbours' scene term only: not
         # part of the patterns' summaries
@@ -193,6 +223,60 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         extra = _pattern_mean_covariance(H, cross, local, centred, local_var)
         params += estimates(effects, glob, H, converged and np.isfinite(chi), extra)
     return PixelFit(effects, mu, X_local, local, local_var, wp)
+
+
+def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, raw: np.ndarray,
+              refill: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray]:
+    """The derivatives that couple the pixels through their neighbours' scene estimates
+    (:func:`~forensics.check.coupled.coupled_step`): per pixel-local pattern Z, how a pixel's own values move
+    what it subtracts from its neighbours' estimates — its deviation at zero light (the neighbour term), less,
+    at a known defect, its refill (what a typical pixel would have read there, which carries the pixel's
+    patterns back in: at a stuck pixel the two cancel); F, the prediction by the neighbour term (light frames).
+    ``dev``'s neighbour term must be consistent with its patterns; ``refill`` is its current refill."""
+
+    def moved() -> np.ndarray:
+        out = predictor.deviation(dev, pixels)
+        return out if refill is None else out - predictor.refill(dev, pixels)
+
+    base = predictor.deviation(dev, pixels) - (0.0 if refill is None else refill)
+    Z = []
+    for _, p in local:
+        used = used_blocks(p)
+        eps = 1e-3 * (1.0 + float(np.max(np.abs(p.values[used])))) if used.size else 1.0
+        p.values[used] += eps
+        try:
+            Z.append((moved() - base) / eps * (p.blocks >= 0)[None])
+        finally:
+            p.values[used] -= eps
+    shift = dev.state[SCENE_SHIFT]
+    light = ~predictor.dark[:, None, None]
+    h = 1e-2  # DN: the prediction is piecewise linear in the scene through the chain's tabulated inverse
+    dev.state[SCENE_SHIFT] = shift + h * light
+    F = (predict(dev, clip=False) - raw) / h * light
+    dev.state[SCENE_SHIFT] = shift
+    return Z, F
+
+
+def _coupled_refit(consistent, dev: Device, local: list, X_local: list[np.ndarray], Z: list[np.ndarray],
+                   F: np.ndarray, wp: np.ndarray, y: np.ndarray, mu: np.ndarray, centred: list[bool]) -> np.ndarray:
+    """One joint Gauss–Newton step of the pixel-local patterns with their neighbours' scene term
+    (:func:`~forensics.check.coupled.coupled_step`) from the consistent prediction ``mu``, halved (at most 4
+    times) until χ² does not increase (else the patterns stay); returns the consistent prediction."""
+    step = coupled_step(X_local, Z, F, wp, y - mu, centred)
+    chi_old = float(np.sum(wp * (y - mu) ** 2))
+    saved = [p.values.copy() for _, p in local]
+    fraction = 1.0
+    for _ in range(5):
+        for (_, p), d in zip(local, step.delta):
+            m = p.blocks >= 0
+            p.values[p.blocks[m]] += (fraction * d[m]).astype(p.values.dtype)
+        trial = consistent(dev)
+        if float(np.sum(wp * (y - trial) ** 2)) <= chi_old:
+            return trial
+        for (_, p), v in zip(local, saved):
+            p.values[...] = v
+        fraction /= 2
+    return consistent(dev)
 
 
 def _pattern_mean_covariance(H: np.ndarray | None, cross: np.ndarray | None, local: list, centred: list[bool],
@@ -221,14 +305,20 @@ def _pattern_mean_covariance(H: np.ndarray | None, cross: np.ndarray | None, loc
     return hinv @ cross @ np.diag(spread) @ cross.T @ hinv
 
 
-def _global_step(predict, refit_local, device: Device, effects: list[Effect], glob: list[tuple[int, str]],
-                 pats: list[tuple[int, Pattern]], local: list, X_local: list[np.ndarray], y: np.ndarray,
-                 w: np.ndarray, mu: np.ndarray,
-                 centred: list[bool]) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
+def _global_step(predict, consistent, refit_local, device: Device, effects: list[Effect],
+                 glob: list[tuple[int, str]], pats: list[tuple[int, Pattern]], local: list,
+                 X_local: list[np.ndarray], y: np.ndarray,
+                 w: np.ndarray, mu: np.ndarray, centred: list[bool],
+                 coupling: tuple[list[np.ndarray], np.ndarray] | None = None,
+                 wp: np.ndarray | None = None) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
     """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
-    does not increase (at most 8 times; else the old values stay).  Returns the effects, the Gauss–Newton
+    does not increase (at most 8 times; else the old values stay).  χ² is that of the consistent prediction
+    (``consistent``: the neighbours' pattern term of the trial's own patterns), so every accepted step lowers the
+    objective itself; the derivatives hold the neighbour term fixed.  Returns the effects, the Gauss–Newton
     matrix (for standard errors) and the parameters' cross information with the random-effect patterns'
-    common modes (None without such patterns)."""
+    common modes (None without such patterns).  ``coupling``: the cycle's (Z, F) when the patterns are solved
+    jointly (:func:`_coupling`): the parameters are then profiled against that joint solve (with the pattern
+    weights ``wp``), else pixel by pixel."""
     dev = on_device(device, effects)
     r = y - mu
     raw = predict(dev, clip=False)
@@ -241,8 +331,15 @@ def _global_step(predict, refit_local, device: Device, effects: list[Effect], gl
         if v + d > hi:
             d = -d
         moved = on_device(device, with_param(effects, i, n, v + d))
-        J.append(proj.project((predict(moved, clip=False) - raw) / d * np.sqrt(w)))
-    zr = proj.project(r * np.sqrt(w))
+        column = (predict(moved, clip=False) - raw) / d
+        if coupling is not None:  # profiled against the joint pattern solve, neighbours' term included
+            Z, F = coupling
+            delta = coupled_step(X_local, Z, F, wp, column, centred).delta
+            J.append((column - coupled_forward(X_local, Z, F, delta)) * np.sqrt(w))
+        else:
+            J.append(proj.project(column * np.sqrt(w)))
+    # the residual is already least squares in the patterns (the joint solve), else projected pixel by pixel
+    zr = r * np.sqrt(w) if coupling is not None else proj.project(r * np.sqrt(w))
     H = np.array([[np.sum(a * b) for b in J] for a in J])
     # cross information with the random-effect patterns' common modes (a uniform shift of all their values)
     modes = [proj.project(x * np.sqrt(w)) for x, c in zip(X_local, centred) if c]
@@ -259,7 +356,7 @@ def _global_step(predict, refit_local, device: Device, effects: list[Effect], gl
         for (i, n), v, s in zip(glob, old, step):
             trial = with_clipped_param(trial, i, n, v + s)
         tdev = on_device(device, trial)
-        mu_new = predict(tdev)
+        mu_new = consistent(tdev)
         if local:
             mu_new = refit_local(tdev, X_local, mu_new)
         chi_new = float(np.sum(w * (y - mu_new) ** 2))

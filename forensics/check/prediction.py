@@ -46,6 +46,9 @@ from forensics.stats.censored import readout_moments
 
 #: Key of :meth:`Predictor.scene_shift`'s frozen result in a fitted device's state (absent: no shift).
 SCENE_SHIFT = "check:scene_shift"
+#: Key of frozen defect refills (:meth:`Predictor.refill`) in a device's state: while present, the
+#: neighbours' estimates keep them whatever the defects' own parameters (derivatives by a pixel's own values).
+FROZEN_REFILL = "check:frozen_refill"
 
 
 def intact(device: Device) -> Device:
@@ -109,9 +112,20 @@ class Predictor:
 
     def scene_shift(self, device: Device, pixels: PixelData) -> np.ndarray:
         """Per repeated condition with light, K·δ: the scene kernel applied to the pixels' deviation from a
-        typical pixel at zero light (their additive fixed patterns; a known defect's refill keeps its pixel's
-        patterns, so it counts too; outliers the scene estimate filled do not); zeros for dark frames, where
-        nothing deviates, and for data without dark frames.  ``(R, H, W)``."""
+        typical pixel at zero light (:meth:`deviation`); zeros for dark frames, where nothing deviates, and for
+        data without dark frames.  ``(R, H, W)``."""
+        delta = self.deviation(device, pixels)
+        out = np.zeros_like(delta)
+        for r in range(len(self.rgroups)):
+            if np.any(np.abs(delta[r]) > 1e-12):
+                out[r] = kernel_estimate(delta[r])
+        return out
+
+    def deviation(self, device: Device, pixels: PixelData) -> np.ndarray:
+        """Per repeated condition with light, δ: the pixels' deviation from a typical pixel at zero light (their
+        additive fixed patterns; a known defect's refill keeps its pixel's patterns, so it counts too; outliers
+        the scene estimate filled do not) — what the scene estimates average into :meth:`scene_shift`.  Zeros
+        for dark frames and for data without dark frames.  ``(R, H, W)``."""
         out = np.zeros((len(self.rgroups), *self.shape))
         if not self.dark.any():
             # without frames predicted from the chain alone every frame sees a pixel's additive pattern through
@@ -124,20 +138,27 @@ class Predictor:
             if self.dark[r]:
                 continue
             delta = clean.mean_signal(zero, context(clean, g)) - typical.mean_signal(zero, context(typical, g))
-            delta = np.where(pixels.scene_excluded[r], 0.0, delta)  # filled outliers: not in the estimate
-            if not np.any(np.abs(delta) > 1e-12):
-                continue
-            out[r] = kernel_estimate(delta)
+            out[r] = np.where(pixels.scene_excluded[r], 0.0, delta)  # filled outliers: not in the estimate
         return out
 
-    def predict(self, device: Device, pixels: PixelData, half: str = "a", clip: bool = True) -> np.ndarray:
+    def refill(self, device: Device, pixels: PixelData, half: str = "a") -> np.ndarray:
+        """What a typical pixel would have read at each known defect, as :meth:`predict` puts it into the
+        neighbours' scene estimates (the defect's reading less its modelled deviation), per repeated condition
+        ``(R, H, W)``; zero where no defect is (and in dark frames, whose prediction ignores the scene)."""
+        out = np.zeros((len(self.rgroups), *self.shape))
+        self.predict(device, pixels, half, clip=False, record=out)
+        return out
+
+    def predict(self, device: Device, pixels: PixelData, half: str = "a", clip: bool = True,
+                record: np.ndarray | None = None) -> np.ndarray:
         """Predicted mean output ``(R, H, W)`` of every repeated condition for the half's scene estimates.
 
         Known defects entered the scene estimate through fill values; here they are replaced by the
         defect's reading minus its modelled deviation from a typical pixel (what a typical pixel there
         would have read, noise and fixed patterns included), so that the neighbours' prediction does not
         depend on how the gap was filled.  (The deviation is the defect's: the pixel's fixed patterns,
-        which a normal pixel there would show too, stay in.)
+        which a normal pixel there would show too, stay in.)  With :data:`FROZEN_REFILL` in the device's state
+        those values are taken from there; ``record`` (R, H, W), if given, receives them.
         """
         scenes = pixels.scene_a if half == "a" else pixels.scene_b
         fills = pixels.fill_a if half == "a" else pixels.fill_b
@@ -145,6 +166,7 @@ class Predictor:
         typical = device.typical()
         clean = intact(device)
         shift = device.state.get(SCENE_SHIFT)
+        frozen = device.state.get(FROZEN_REFILL)
         out = np.empty(scenes.shape)
         h, w = self.shape
         cache = pixels.light_cache
@@ -171,9 +193,15 @@ class Predictor:
                 # a defect read at 0 or full scale shows its clipped value: the deviation it shows is the clipped
                 # one (a stuck pixel at black level + c beyond full scale would otherwise leak the excess, e.g.
                 # the black level, into every neighbour's prediction)
-                deviation = np.clip(mu, 0.0, self.meas.full_scale) - clean.mean_signal(light, context(clean, g))
                 src, dst, wts = pixels.refill_ops[g.epoch]
-                refill = (means[r] - deviation - fills[r]).ravel()[src]
+                if frozen is not None:
+                    typical_reading = frozen[r]
+                else:
+                    deviation = np.clip(mu, 0.0, self.meas.full_scale) - clean.mean_signal(light, context(clean, g))
+                    typical_reading = means[r] - deviation
+                if record is not None:
+                    record[r] = np.where(pixels.defect_mask[r], typical_reading, 0.0)
+                refill = (typical_reading - fills[r]).ravel()[src]
                 correction = np.bincount(dst, wts * refill, minlength=h * w)
                 touched = np.flatnonzero(correction)
                 light = light.copy().ravel()

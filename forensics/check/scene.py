@@ -159,6 +159,37 @@ def kernel_estimate(image: np.ndarray, kernel: np.ndarray = KERNEL) -> np.ndarra
     return est
 
 
+def kernel_transpose(image: np.ndarray, power: int = 1) -> np.ndarray:
+    """The transpose of :func:`kernel_estimate` (default kernel) applied to ``image``: ``Kᵀ·u`` with
+    ``(Kᵀ·u)_q = Σ_p K_pq·u_p`` — how much each pixel's value enters all the estimates, weighted by ``u``.
+    ``power=2``: the same with the squared weights K_pq² (the coupling's share of a pixel's own information).
+
+    Interior rows are the plain kernel, whose transpose is a convolution with zeros outside; the edge band's
+    clipped windows (:func:`_edge_band`) are scattered back by their own weights."""
+    u = np.asarray(image, np.float64)
+    h = SCENE_SIZE // 2
+    H, W = u.shape
+    if H <= 2 * h + 1 or W <= 2 * h + 1:  # no edge band (kernel_estimate reflects): the transpose by probing
+        return _probed_transpose(u, power)
+    inner = np.zeros_like(u)
+    inner[h:H - h, h:W - h] = u[h:H - h, h:W - h]
+    out = ndimage.convolve(inner, KERNEL**power, mode="constant", cval=0.0)
+    ys, xs, index, weights = _edge_band((H, W), SCENE_SIZE)
+    band = u[ys, xs]
+    flat = out.ravel()
+    for j in range(SCENE_SIZE * SCENE_SIZE):
+        flat += np.bincount(index[j], weights[j] ** power * band, minlength=H * W)
+    return out
+
+
+def _probed_transpose(u: np.ndarray, power: int) -> np.ndarray:
+    """Kᵀ·u from the matrix of :func:`kernel_estimate`, one column per pixel (small images only)."""
+    n = u.size
+    eye = np.eye(n).reshape(n, *u.shape)
+    columns = np.stack([kernel_estimate(e).ravel() for e in eye], axis=1)  # K[:, q] = K·e_q
+    return ((columns**power).T @ u.ravel()).reshape(u.shape)
+
+
 def scene_estimate_and_fill(image: np.ndarray, exclude: np.ndarray | None = None, kernel: np.ndarray = KERNEL,
                             passes: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """The light each pixel would show if it were typical, estimated from its neighbours, and the image as

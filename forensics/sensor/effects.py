@@ -252,24 +252,33 @@ class Prnu(Effect):
 @register_effect
 @dataclass
 class Dsnu(Effect):
-    """Dark-signal non-uniformity: each pixel adds its own constant offset, light or not (EMVA 1288 DSNU)."""
+    """Dark-signal non-uniformity: each pixel adds its own constant offset, light or not (EMVA 1288 DSNU).
+
+    The offsets are ``offset + o`` with o ~ N(0, σ_o): the fit holds the per-pixel values at zero mean (a random
+    effect), so their mean is the parameter ``offset``.  It sits before the analog gain with the pixels'
+    electronics: under an ISO gain the dark level grows with it, which the black level after the gain cannot
+    follow (without a gain the two trade off exactly and ``offset`` is reported as not identifiable)."""
 
     name = "dsnu"
-    description = "dark-signal non-uniformity: every pixel adds its own constant offset o ~ N(0, σ_o)"
+    description = "dark-signal non-uniformity: every pixel adds its own constant offset, offset + o, o ~ N(0, σ_o)"
     stage = Stage.DARK
 
     sigma_o: float = param(1.0, "DN", "standard deviation of the per-pixel offsets", null=0.0)
+    offset: float = param(0.0, "DN", "mean of the per-pixel offsets (before any analog gain)", null=0.0,
+                          free=True)
 
     def realize(self, device: Device, rng: np.random.Generator) -> None:
         device.state[self.key] = (self.sigma_o * rng.standard_normal(device.model.shape, dtype=np.float32)).astype(np.float32)
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         signal += per_pixel(ctx.device.state[self.key], signal)
+        if self.offset:
+            signal += np.asarray(self.offset, signal.dtype)
         return signal
 
     def electronic(self, ctx: FrameContext) -> np.ndarray | float:
         # an offset of the pixel's electronics, not collected charge: no shot noise on it
-        return ctx.device.state.get(self.key, 0.0)
+        return ctx.device.state.get(self.key, 0.0) + self.offset
 
     def patterns(self, device: Device) -> list[Pattern]:
         h, w = device.model.shape

@@ -544,8 +544,18 @@ class Device:
         if scene.shape[:2] != (h, w):
             raise InputError(f"scene of shape {scene.shape[:2]} does not match the sensor's {(h, w)}")
         signal = np.array(scene, dtype=np.float32, copy=True)
+        noiseless = None
         for effect in self.model.effects:
-            if effect.stage != Stage.ARRIVAL:
+            if effect.stage == Stage.ARRIVAL:
+                continue
+            if effect.stage == Stage.NOISE:
+                # independent noise sources, each with its law at the noiseless signal (shot noise counts the
+                # collected electrons, not electrons plus a read noise drawn before it): their variances add,
+                # as Effect.variance states, whatever the order of the effects
+                if noiseless is None:
+                    noiseless = signal.copy()
+                signal += effect.apply(noiseless.copy(), ctx, rng) - noiseless
+            else:
                 signal = effect.apply(signal, ctx, rng)
         return signal
 

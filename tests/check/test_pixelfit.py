@@ -72,3 +72,21 @@ def test_estimation_variance_is_x2_v_and_shrinks_for_random_effects():
     pe = PatternEstimate("e", "k", 20, 1.0, 1.0, "sigma_k", 1.0)  # τ² = 1: MSE v·τ²/(τ² + v) = 1/3
     out = estimation_variance([(0, random)], [x], v, [pe], [E()])
     assert np.allclose(out, 4.0 * 0.5 / 1.5)
+
+
+def test_recentre_moves_random_effects_to_zero_mean_only():
+    """A random-effect pattern's mean belongs to a global parameter: whatever moved it (values zeroed at dropped
+    pixels) is shifted back; a fixed-effect pattern (a defect's offset) keeps its values."""
+    from forensics.check.pixelfit import recentre
+
+    rng = np.random.default_rng(6)
+    random_pat = Pattern("o", (3.0 + rng.standard_normal(64)).astype(np.float32), np.arange(64).reshape(8, 8))
+    fixed_pat = Pattern("d", np.array([5.0, 7.0]), np.full((8, 8), -1))
+    fixed_pat.blocks[0, 0], fixed_pat.blocks[3, 3] = 0, 1
+    spread = float(np.std(random_pat.values))
+    fixed_before = fixed_pat.values.copy()
+    assert recentre([(0, random_pat), (1, fixed_pat)], [True, False])
+    assert abs(float(np.mean(random_pat.values, dtype=np.float64))) < 1e-6 * spread
+    assert np.isclose(float(np.std(random_pat.values)), spread, rtol=1e-5)  # a shift, not a rescaling
+    assert np.array_equal(fixed_pat.values, fixed_before)
+    assert not recentre([(0, random_pat)], [True])  # already centred: nothing to do
