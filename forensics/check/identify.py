@@ -5,8 +5,8 @@ the data say nothing about (a zero column: a black level when no frame is dark a
 signal) or that trades off exactly against others (a near-null direction of ``H``) is *not identifiable*:
 its value is whatever the fit started from, and a standard error from a pseudo-inverse would be meaningless
 (zero, or "0 ± 1,070").  Such parameters are reported as not identifiable, naming what they trade off
-against; the covariance of the others is the inverse of their own block of ``H`` (the unidentifiable
-ones held fixed).
+against; the covariance of the others is the pseudo-inverse of ``H`` without its null directions, so what
+the data do determine of the unidentifiable ones (their sum, say) still widens the others' intervals.
 """
 from __future__ import annotations
 
@@ -79,9 +79,17 @@ def identify(information: np.ndarray, names: Sequence[str], values: Sequence[flo
                 ok[m] = False
                 why[m] = ("not separable from " + ", ".join(others)) if others else "the data carry no information on it"
     cov = np.full((k, k), np.nan)
-    idx = np.flatnonzero(ok)
-    if idx.size:
-        cov[np.ix_(idx, idx)] = np.linalg.inv(H[np.ix_(idx, idx)])
+    if ok.any():
+        # the pseudo-inverse of the informative block with its null directions left out, not the inverse of the
+        # identifiable parameters' own block: what the data do determine of the others (the sum of two names
+        # for one dark offset) still moves with the identifiable ones and must widen their intervals — held
+        # fixed, the EMVA black level's 95 % interval covered 65 % of 100 cameras, the ISO exponent's 77 %
+        informative_idx = np.flatnonzero(informative(H, None if values is None else np.asarray(values, float)))
+        block = H[np.ix_(informative_idx, informative_idx)]
+        inv, _ = scaled_pinv(block, NULL_DIRECTION)
+        keep = ok[informative_idx]
+        idx = informative_idx[keep]
+        cov[np.ix_(idx, idx)] = inv[np.ix_(keep, keep)]
     return Identification(cov, ok, why)
 
 

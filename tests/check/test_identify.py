@@ -24,7 +24,11 @@ def test_parameters_that_trade_off_exactly_name_each_other():
     ident = identify(J.T @ J, ["a", "b", "c"])
     assert not ident.identifiable[0] and not ident.identifiable[1] and ident.identifiable[2]
     assert "b" in ident.why[0] and "a" in ident.why[1]
-    assert ident.se(2) == pytest.approx(np.sqrt(1 / (J[:, 2] @ J[:, 2])))
+    # c's standard error is its marginal one with what the data do determine of a and b (their common column)
+    # free, not held fixed: 1/‖J_c off span(J_a)‖
+    ja, jc = J[:, 0], J[:, 2]
+    off = jc - ja * (ja @ jc) / (ja @ ja)
+    assert ident.se(2) == pytest.approx(np.sqrt(1 / (off @ off)))
 
 
 @pytest.fixture(scope="module")
