@@ -78,5 +78,10 @@ def seed_record(rng: RngLike) -> Any:
     if isinstance(rng, (int, np.integer)) and not isinstance(rng, (bool, np.bool_)):
         return int(rng)
     seq = rng if isinstance(rng, np.random.SeedSequence) else as_generator(rng).bit_generator.seed_seq
-    return {"entropy": int(seq.entropy) if seq.entropy is not None else None,
+    entropy = seq.entropy
+    if isinstance(entropy, (list, tuple, np.ndarray)):  # a keyed sub-stream: [seed, *key]
+        entropy = [int(e) for e in entropy]
+    elif entropy is not None:
+        entropy = int(entropy)
+    return {"entropy": entropy,
             "spawn_key": [int(k) for k in seq.spawn_key]}

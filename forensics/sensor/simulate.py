@@ -150,9 +150,8 @@ def age_dataset(
                                  f"({first_dtype} {shape}); a source set must be uniform")
             ext = image_format or (frame.path.suffix.lower() if frame.path.suffix.lower() in (".png", ".tif", ".tiff") else ".png")
             stem = Path(frame.file).stem
-            for step, (ctx, name) in enumerate(zip(contexts, names)):
-                frame_rng = keyed_generator(rng, index, step)
-                aged = device.expose(image, ctx, frame_rng)
+            for step, (aged, ctx, name) in enumerate(zip(aged_exposures(device, image, contexts, rng, index),
+                                                         contexts, names)):
                 fname = f"{stem}{ext}"
                 write_image(tmp / name / fname, aged)
                 rows[step].append({"file": fname, "device": _device_name(sensor_name, seed),
@@ -169,6 +168,16 @@ def age_dataset(
     counts = {"partial": [int(c) for c in device.catalogue.counts(times, kind=0)],
               "stuck": [int(c) for c in device.catalogue.counts(times, kind=1)]}
     return AgeingResult(out, [out / n for n in names], list(ages), len(source), len(device.catalogue), counts, sensor)
+
+
+def aged_exposures(device: Device, image: np.ndarray, contexts: list, rng: RngLike, index: int,
+                   first_step: int = 0) -> list[np.ndarray]:
+    """Source image ``index`` as ``device`` records it under each context (one per age).
+
+    The frame at step ``k`` draws its noise from ``keyed_generator(rng, index, first_step + k)``: the same
+    image at the same step is the same whichever command ages it, in whatever order.
+    """
+    return [device.expose(image, ctx, keyed_generator(rng, index, first_step + k)) for k, ctx in enumerate(contexts)]
 
 
 def _device_name(sensor_name: str | None, seed: Any) -> str:

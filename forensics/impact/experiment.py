@@ -1,0 +1,476 @@
+"""The ageing-impact experiment: EER against virtual sensor age, for any matcher (the reference paper's section 5).
+
+For every virtual sensor, one device (one defect history) ages every image of the source set to every age —
+exactly the ageing simulation of :func:`~forensics.sensor.simulate.age_dataset` — and every matcher encodes
+each aged image once.  At every age all genuine and all impostor comparisons (pairs ``i < j`` of the set, or a
+documented sample of the impostor pairs) are scored under two protocols:
+
+``same-age``
+    enrolment and probe both aged to the same age (the reference paper's protocol);
+``enrol-0``
+    enrolment image at age 0, probe aged to age T (what an operator whose sensor ages after enrolment
+    faces).  Pair ``i < j`` enrols image ``i`` and probes with image ``j``.
+
+Statistics.  The EER's interval resamples *classes* (:mod:`forensics.stats.clustered`), because comparisons
+sharing an image are not independent.  Every sensor, age, matcher and protocol uses the same class resamples,
+so replicate ``r`` of the EER at two ages is the same resample of subjects: the trend against age (the OLS
+slope of the EER on age) and the change from the first to the last age get paired intervals, and a change is
+called significant only when its interval excludes zero.  Across sensors (the paper's figure 6) the mean EER
+at each age gets a paired interval too, with the spread (standard deviation, range) beside it.
+
+Resuming.  With a checkpoint folder, every finished (sensor, age) writes its results (and, at age 0, the
+enrolment templates) atomically; a rerun with the same settings skips them and gives the identical result.
+"""
+from __future__ import annotations
+
+import pickle
+import time
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from forensics import __version__
+from forensics._shared.atomic import atomic_file, write_json
+from forensics._shared.errors import InputError, UsageError
+from forensics._shared.progress import Progress, no_progress
+from forensics._shared.rng import RngLike, keyed_generator, seed_record
+from forensics.impact.matchers import Matcher, compare_all
+from forensics.io.dataset import Dataset
+from forensics.sensor.model import SensorModel, load_model
+from forensics.sensor.presets import PRESETS, preset
+from forensics.sensor.simulate import aged_exposures, source_bit_depth
+from forensics.stats.clustered import ClassBootstrap, PairedScores, class_bootstrap_eer, class_weights
+
+__all__ = ["PROTOCOLS", "SensorSpec", "UnitResult", "Trend", "Spread", "ImpactResult", "parse_sensors",
+           "run_impact"]
+
+PROTOCOLS: dict[str, str] = {
+    "same-age": "enrolment and probe both aged to the same age (the reference paper's protocol)",
+    "enrol-0": "enrolment at age 0, probe aged to age T (the operator's protocol)",
+}
+# Sub-streams of the run's seed (keyed_generator keys): one device per sensor, the class resamples, the
+# impostor sample.  Keyed by the sensor's name, so adding a sensor changes no other sensor's history.
+_DEVICE_STREAM, _BOOT_STREAM, _SAMPLE_STREAM = 1, 2, 3
+_HIST_BINS = 60
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """A virtual sensor: its name in outputs and its model."""
+
+    name: str
+    model: SensorModel
+
+    def stream_key(self) -> int:
+        return zlib.crc32(self.name.encode())
+
+
+def parse_sensors(spec: str, shape: tuple[int, int], bit_depth: int) -> list[SensorSpec]:
+    """Sensors from a comma list: presets ``A``–``H``, ``H*100`` (a preset with its rates × 100), or the path of
+    a ``sensor.json`` written by ``forensics simulate age`` (its name is the file's folder)."""
+    out: list[SensorSpec] = []
+    for item in (s.strip() for s in spec.split(",")):
+        if not item:
+            continue
+        name, _, scale = item.partition("*")
+        if name.upper() in PRESETS:
+            try:
+                rate_scale = float(scale) if scale else 1.0
+            except ValueError:
+                raise UsageError(f"--sensors '{item}': write a preset and a rate factor as H*100") from None
+            if rate_scale <= 0:
+                raise UsageError(f"--sensors '{item}': the rate factor must be > 0")
+            label = name.upper() + (f"×{rate_scale:g}" if scale else "")
+            out.append(SensorSpec(label, preset(name, shape, bit_depth=bit_depth, rate_scale=rate_scale)))
+        elif item.endswith(".json"):
+            model = load_model(item)
+            if tuple(model.shape) != tuple(shape) or model.bit_depth != bit_depth:
+                raise InputError(f"{item}: the sensor is {model.shape[1]}×{model.shape[0]} at {model.bit_depth} bits "
+                                 f"but the images are {shape[1]}×{shape[0]} at {bit_depth} bits")
+            out.append(SensorSpec(Path(item).resolve().parent.name or Path(item).stem, model))
+        else:
+            raise UsageError(f"--sensors '{item}': use presets A–H, a preset with a rate factor (H*100) or a "
+                             "sensor.json")
+    if not out:
+        raise UsageError("--sensors: name at least one sensor (e.g. A,B,H)")
+    names = [s.name for s in out]
+    if len(set(names)) != len(names):
+        raise UsageError(f"--sensors: a sensor is named twice ({', '.join(names)})")
+    return out
+
+
+@dataclass
+class UnitResult:
+    """One EER: a sensor at an age, one matcher, one protocol."""
+
+    sensor: str
+    age: float
+    matcher: str
+    protocol: str
+    eer: ClassBootstrap
+    histogram: dict[str, Any]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"sensor": self.sensor, "age": self.age, "matcher": self.matcher, "protocol": self.protocol,
+                **self.eer.to_dict()}
+
+
+@dataclass(frozen=True)
+class Trend:
+    """The EER's trend against age for one sensor, matcher and protocol (paired over class resamples)."""
+
+    sensor: str
+    matcher: str
+    protocol: str
+    slope: float
+    slope_ci: tuple[float, float]
+    p_value: float
+    change: float
+    change_ci: tuple[float, float]
+    level: float
+
+    @property
+    def significant(self) -> bool:
+        return not (self.slope_ci[0] <= 0.0 <= self.slope_ci[1])
+
+    def describe(self) -> str:
+        per_decade = [10 * v * 100 for v in (self.slope, *self.slope_ci)]
+        verdict = "significant" if self.significant else "no significant trend"
+        return (f"{verdict}: slope {per_decade[0]:+.3f} points per decade "
+                f"[{per_decade[1]:+.3f}, {per_decade[2]:+.3f}], p = {self.p_value:.3g}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"sensor": self.sensor, "matcher": self.matcher, "protocol": self.protocol,
+                "slope_per_year": self.slope, "slope_ci": list(self.slope_ci), "p_value": self.p_value,
+                "significant": self.significant, "change": self.change, "change_ci": list(self.change_ci),
+                "level": self.level}
+
+
+@dataclass(frozen=True)
+class Spread:
+    """The EER across sensors at one age (the paper's figure 6): mean with a paired interval, SD, range."""
+
+    matcher: str
+    protocol: str
+    age: float
+    mean: float
+    mean_ci: tuple[float, float]
+    sd: float
+    minimum: float
+    maximum: float
+    n_sensors: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"matcher": self.matcher, "protocol": self.protocol, "age": self.age, "mean": self.mean,
+                "mean_ci": list(self.mean_ci), "sd": self.sd, "min": self.minimum, "max": self.maximum,
+                "n_sensors": self.n_sensors}
+
+
+@dataclass
+class ImpactResult:
+    """Everything :func:`run_impact` measured."""
+
+    source: str
+    n_images: int
+    n_classes: int
+    n_genuine: int
+    n_impostor: int
+    impostors_sampled: bool
+    sensors: list[str]
+    ages: list[float]
+    matchers: list[str]
+    protocols: list[str]
+    n_boot: int
+    level: float
+    seed: Any
+    units: list[UnitResult]
+    trends: list[Trend] = field(default_factory=list)
+    spreads: list[Spread] = field(default_factory=list)
+    elapsed_s: float = 0.0
+    resumed_units: int = 0
+
+    def unit(self, sensor: str, age: float, matcher: str, protocol: str) -> UnitResult:
+        for u in self.units:
+            if (u.sensor, u.age, u.matcher, u.protocol) == (sensor, age, matcher, protocol):
+                return u
+        raise KeyError((sensor, age, matcher, protocol))
+
+    def trajectory(self, sensor: str, matcher: str, protocol: str) -> list[UnitResult]:
+        return [self.unit(sensor, a, matcher, protocol) for a in self.ages]
+
+    def trend(self, sensor: str, matcher: str, protocol: str) -> Trend:
+        return next(t for t in self.trends if (t.sensor, t.matcher, t.protocol) == (sensor, matcher, protocol))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": self.source, "n_images": self.n_images, "n_classes": self.n_classes,
+                "n_genuine": self.n_genuine, "n_impostor": self.n_impostor,
+                "impostors": "sample" if self.impostors_sampled else "all", "sensors": self.sensors,
+                "ages": self.ages, "matchers": self.matchers,
+                "protocols": {p: PROTOCOLS[p] for p in self.protocols}, "n_boot": self.n_boot,
+                "level": self.level, "bootstrap": "classes resampled with replacement; same resamples for "
+                                                  "every sensor, age, matcher and protocol (paired)",
+                "seed": self.seed, "units": [u.to_dict() for u in self.units],
+                "trends": [t.to_dict() for t in self.trends], "spreads": [s.to_dict() for s in self.spreads],
+                "elapsed_s": self.elapsed_s, "resumed_units": self.resumed_units,
+                "forensics_version": __version__}
+
+
+def _classes(source: Dataset) -> tuple[np.ndarray, list[str]]:
+    subjects = []
+    for frame in source.frames:
+        subject = frame.subject
+        if subject is None or str(subject).strip() == "":
+            raise InputError(f"{source.root / 'manifest.csv'}: {frame.file} has no subject; the impact experiment "
+                             "needs the class of every image in the manifest's 'subject' column")
+        subjects.append(str(subject))
+    names = sorted(set(subjects))
+    index = {n: k for k, n in enumerate(names)}
+    return np.array([index[s] for s in subjects], dtype=np.intp), names
+
+
+def _pairs(labels: np.ndarray, impostors: int | None, rng: RngLike) -> tuple[np.ndarray, np.ndarray, bool]:
+    """All pairs ``i < j``, or all genuine pairs and a uniform sample of ``impostors`` impostor pairs."""
+    i, j = np.triu_indices(labels.size, 1)
+    genuine = labels[i] == labels[j]
+    if impostors is None or impostors >= int((~genuine).sum()):
+        return i, j, False
+    pick = keyed_generator(rng, _SAMPLE_STREAM).choice(np.flatnonzero(~genuine), size=int(impostors), replace=False)
+    keep = np.sort(np.concatenate([np.flatnonzero(genuine), pick]))
+    return i[keep], j[keep], True
+
+
+def _scores(matcher: Matcher, enrol: Sequence[Any], probe: Sequence[Any], i: np.ndarray, j: np.ndarray,
+            sampled: bool) -> np.ndarray:
+    """Scores of pairs (enrol[i], probe[j]): the vectorised matrix when all pairs are wanted, else pair by pair
+    for matchers without their own ``compare_all``."""
+    if sampled and not hasattr(matcher, "compare_all"):
+        return np.array([matcher.compare(enrol[a], probe[b]) for a, b in zip(i, j)], dtype=np.float64)
+    matrix = np.asarray(compare_all(matcher, enrol, probe), dtype=np.float64)
+    return matrix[i, j]
+
+
+def _histogram(pairs: PairedScores, higher_is_similar: bool) -> dict[str, Any]:
+    """A coarse histogram of the genuine and impostor scores in the matcher's own orientation (for reports)."""
+    g, imp = pairs.split()
+    sign = 1.0 if higher_is_similar else -1.0
+    g, imp = sign * g, sign * imp
+    lo, hi = float(min(g.min(), imp.min())), float(max(g.max(), imp.max()))
+    edges = np.linspace(lo, hi if hi > lo else lo + 1.0, _HIST_BINS + 1)
+    return {"edges": edges.tolist(), "genuine": np.histogram(g, edges)[0].tolist(),
+            "impostor": np.histogram(imp, edges)[0].tolist()}
+
+
+class _Checkpoint:
+    """Finished (sensor, age) units of one run, each in its own atomically written file."""
+
+    def __init__(self, folder: Path | None, config: dict[str, Any]) -> None:
+        self.folder = folder
+        if folder is None:
+            return
+        folder.mkdir(parents=True, exist_ok=True)
+        stored = folder / "config.json"
+        if stored.exists():
+            import json
+
+            if json.loads(stored.read_text()) != json.loads(json.dumps(config, default=str)):
+                raise InputError(f"{folder}: this checkpoint was made with other settings; remove it or choose "
+                                 "another folder")
+        else:
+            write_json(stored, config)
+
+    def _path(self, sensor: int, age: int) -> Path:
+        assert self.folder is not None
+        return self.folder / f"sensor{sensor:02d}_age{age:03d}.pkl"
+
+    def load(self, sensor: int, age: int) -> dict[str, Any] | None:
+        if self.folder is None or not self._path(sensor, age).exists():
+            return None
+        with open(self._path(sensor, age), "rb") as fh:
+            return pickle.load(fh)
+
+    def save(self, sensor: int, age: int, payload: dict[str, Any]) -> None:
+        if self.folder is not None:
+            with atomic_file(self._path(sensor, age), force=True) as fh:
+                pickle.dump(payload, fh, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def run_impact(
+    source: Dataset,
+    sensors: Sequence[SensorSpec],
+    ages: Sequence[float],
+    matchers: Sequence[Matcher],
+    rng: RngLike,
+    protocols: Sequence[str] = tuple(PROTOCOLS),
+    n_boot: int = 1000,
+    level: float = 0.95,
+    impostors: int | None = None,
+    checkpoint: str | Path | None = None,
+    progress: Progress = no_progress,
+) -> ImpactResult:
+    """Age ``source`` with every sensor to every age, score it with every matcher, and measure the EER.
+
+    Parameters
+    ----------
+    source
+        A dataset whose manifest names each image's class in ``subject`` (left and right eye are two classes).
+    sensors
+        Virtual sensors (:func:`parse_sensors`).
+    ages
+        Ages in years after T0; must include 0 for the ``enrol-0`` protocol.
+    matchers
+        Objects with ``encode``/``compare`` (see :mod:`forensics.impact.matchers`).
+    rng
+        Integer seed or generator of everything random: sensor ``s``'s device and frame noise come from
+        ``keyed_generator(rng, 1, crc32(name))`` exactly as :func:`~forensics.sensor.simulate.age_dataset`
+        would draw them from that generator; the class resamples from ``keyed_generator(rng, 2)``; the
+        impostor sample from ``keyed_generator(rng, 3)``.
+    protocols
+        Any of :data:`PROTOCOLS`.
+    n_boot, level
+        Class-bootstrap replicates and interval coverage.
+    impostors
+        Score only this many impostor pairs, drawn uniformly without replacement (the same pairs at every age
+        and sensor); all genuine pairs are always scored.
+    checkpoint
+        Folder for resumable partial results.
+    """
+    started = time.perf_counter()
+    ages = [float(a) for a in ages]
+    bad = [p for p in protocols if p not in PROTOCOLS]
+    if bad:
+        raise UsageError(f"unknown protocol {bad[0]!r}; choose from {', '.join(PROTOCOLS)}")
+    if "enrol-0" in protocols and 0.0 not in ages:
+        raise UsageError("the enrol-0 protocol enrols at age 0: include 0 in the ages")
+    if len(ages) != len(set(ages)):
+        raise UsageError("an age is given twice")
+    names = [m.name for m in matchers]
+    if len(set(names)) != len(names):
+        raise UsageError(f"a matcher is named twice ({', '.join(names)})")
+    labels, class_names = _classes(source)
+    if len(class_names) < 2:
+        raise InputError(f"{source.root}: the impact experiment needs at least two classes (subjects)")
+    i, j, sampled = _pairs(labels, impostors, rng)
+    n_genuine = int((labels[i] == labels[j]).sum())
+    if n_genuine == 0:
+        raise InputError(f"{source.root}: no class has two images, so there is no genuine comparison")
+    weights = class_weights(len(class_names), n_boot, keyed_generator(rng, _BOOT_STREAM))
+    first = source.frames[0]
+    shape = tuple(source.shape()[:2])
+    bits = source_bit_depth(first.info().dtype)
+    for spec in sensors:
+        if tuple(spec.model.shape) != shape or spec.model.bit_depth != bits:
+            raise InputError(f"{source.root}: images are {shape[1]}×{shape[0]} at {bits} bits but sensor {spec.name} "
+                             f"is {spec.model.shape[1]}×{spec.model.shape[0]} at {spec.model.bit_depth} bits")
+    config = {"source": str(source.root), "files": [f.file for f in source.frames], "sensors": [s.name for s in sensors],
+              "models": [s.model.to_dict() for s in sensors], "ages": ages, "matchers": names,
+              "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
+              "seed": seed_record(rng)}
+    store = _Checkpoint(Path(checkpoint) if checkpoint is not None else None, config)
+    units: list[UnitResult] = []
+    resumed = 0
+    for s_index, spec in enumerate(sensors):
+        sensor_rng = keyed_generator(rng, _DEVICE_STREAM, spec.stream_key())
+        device = spec.model.realize(sensor_rng, [spec.model.t0 + a for a in ages])
+        enrol: dict[str, list[Any]] | None = None
+        for a_index, age in enumerate(ages):
+            saved = store.load(s_index, a_index)
+            if saved is not None:
+                units.extend(saved["units"])
+                resumed += len(saved["units"])
+                if saved.get("enrol") is not None:
+                    enrol = saved["enrol"]
+                continue
+            templates = _encode_all(source, device, spec, a_index, age, sensor_rng, matchers, progress)
+            if age == 0.0:
+                enrol = templates
+            found = []
+            for matcher in matchers:
+                for protocol in protocols:
+                    gallery = templates[matcher.name] if protocol == "same-age" else enrol[matcher.name]
+                    scores = _scores(matcher, gallery, templates[matcher.name], i, j, sampled)
+                    if not np.all(np.isfinite(scores)):
+                        raise InputError(f"matcher {matcher.name} returned a score that is not a finite number")
+                    pairs = PairedScores.of(scores, labels[i], labels[j], len(class_names),
+                                            higher_is_similar=matcher.higher_is_similar)
+                    found.append(UnitResult(spec.name, age, matcher.name, protocol,
+                                            class_bootstrap_eer(pairs, weights, level),
+                                            _histogram(pairs, matcher.higher_is_similar)))
+            store.save(s_index, a_index, {"units": found, "enrol": templates if age == 0.0 else None})
+            units.extend(found)
+    result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,
+                          sampled, [s.name for s in sensors], ages, names, list(protocols), int(n_boot),
+                          float(level), seed_record(rng), units, resumed_units=resumed)
+    result.trends = trends(result)
+    result.spreads = spreads(result)
+    result.elapsed_s = time.perf_counter() - started
+    return result
+
+
+def _encode_all(source: Dataset, device: Any, spec: SensorSpec, a_index: int, age: float, sensor_rng: Any,
+                matchers: Sequence[Matcher], progress: Progress) -> dict[str, list[Any]]:
+    """Every image aged to ``age`` (computed once) and encoded by every matcher."""
+    templates: dict[str, list[Any]] = {m.name: [] for m in matchers}
+    ctx = device.context(spec.model.t0 + age)
+    frames = progress(source.frames, total=len(source), desc=f"sensor {spec.name}, year {age:g}")
+    for index, frame in enumerate(frames):
+        aged = aged_exposures(device, frame.load(), [ctx], sensor_rng, index, first_step=a_index)[0]
+        for matcher in matchers:
+            templates[matcher.name].append(matcher.encode(aged))
+    return templates
+
+
+def _ols_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """OLS slope of each column of ``y`` (ages along axis 0) on ``x``."""
+    xc = x - x.mean()
+    return (xc @ (y - y.mean(axis=0))) / (xc @ xc)
+
+
+def _interval(values: np.ndarray, level: float) -> tuple[float, float]:
+    tail = 100.0 * (1.0 - level) / 2.0
+    finite = values[np.isfinite(values)]
+    lo, hi = np.percentile(finite, [tail, 100.0 - tail])
+    return float(lo), float(hi)
+
+
+def trends(result: ImpactResult) -> list[Trend]:
+    """The paired trend of every (sensor, matcher, protocol) trajectory with two or more ages."""
+    out = []
+    if len(result.ages) < 2:
+        return out
+    x = np.asarray(result.ages)
+    for sensor in result.sensors:
+        for matcher in result.matchers:
+            for protocol in result.protocols:
+                units = result.trajectory(sensor, matcher, protocol)
+                y = np.array([u.eer.estimate for u in units])
+                reps = np.stack([u.eer.replicates for u in units])  # (ages, replicates), paired by column
+                slope = float(_ols_slopes(x, y[:, None])[0])
+                rep_slopes = _ols_slopes(x, reps)
+                rep_slopes = rep_slopes[np.isfinite(rep_slopes)]
+                # Two-sided bootstrap p-value of "no trend": how often the resampled slope falls on the other
+                # side of zero (at least one replicate's worth, so never 0).
+                below, above = np.mean(rep_slopes <= 0), np.mean(rep_slopes >= 0)
+                p = float(min(1.0, max(2 * min(below, above), 1.0 / max(rep_slopes.size, 1))))
+                change = float(y[-1] - y[0])
+                out.append(Trend(sensor, matcher, protocol, slope, _interval(rep_slopes, result.level), p, change,
+                                 _interval(reps[-1] - reps[0], result.level), result.level))
+    return out
+
+
+def spreads(result: ImpactResult) -> list[Spread]:
+    """Mean EER across sensors at every age (paired interval), with the standard deviation and range."""
+    out = []
+    for matcher in result.matchers:
+        for protocol in result.protocols:
+            for age in result.ages:
+                units = [result.unit(s, age, matcher, protocol) for s in result.sensors]
+                values = np.array([u.eer.estimate for u in units])
+                mean_reps = np.mean(np.stack([u.eer.replicates for u in units]), axis=0)
+                out.append(Spread(matcher, protocol, age, float(values.mean()), _interval(mean_reps, result.level),
+                                  float(values.std(ddof=1)) if values.size > 1 else 0.0, float(values.min()),
+                                  float(values.max()), int(values.size)))
+    return out
