@@ -3,7 +3,13 @@ from __future__ import annotations
 
 import argparse
 
-from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for
+from forensics.cli.common import (
+    add_output_options,
+    command_parser,
+    emit,
+    info,
+    progress_for,
+)
 
 
 def register(sub) -> None:

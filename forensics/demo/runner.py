@@ -16,7 +16,7 @@ from forensics.report.demo import demo_page
 from forensics.report.html import Report
 
 
-SECTIONS = ("ageing", "prnu", "defects", "check")
+SECTIONS = ("ageing", "prnu", "defects", "check", "impact")
 _PACKAGE = "forensics.demo"
 
 

@@ -43,10 +43,23 @@ from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
 from forensics.sensor.presets import PRESETS, preset
 from forensics.sensor.simulate import aged_exposures, source_bit_depth
-from forensics.stats.clustered import ClassBootstrap, PairedScores, class_bootstrap_eer, class_weights
+from forensics.stats.clustered import (
+    ClassBootstrap,
+    PairedScores,
+    class_bootstrap_eer,
+    class_weights,
+)
 
-__all__ = ["PROTOCOLS", "SensorSpec", "UnitResult", "Trend", "Spread", "ImpactResult", "parse_sensors",
-           "run_impact"]
+__all__ = [
+    "PROTOCOLS",
+    "ImpactResult",
+    "SensorSpec",
+    "Spread",
+    "Trend",
+    "UnitResult",
+    "parse_sensors",
+    "run_impact",
+]
 
 PROTOCOLS: dict[str, str] = {
     "same-age": "enrolment and probe both aged to the same age (the reference paper's protocol)",

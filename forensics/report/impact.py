@@ -9,7 +9,7 @@ import numpy as np
 from forensics.impact.experiment import PROTOCOLS, ImpactResult
 from forensics.report.html import Report, new_figure
 
-__all__ = ["matchers_figure", "sensors_figure", "histograms_figure", "impact_report"]
+__all__ = ["histograms_figure", "impact_report", "matchers_figure", "sensors_figure"]
 
 
 def _errorbars(ax, result: ImpactResult, sensor: str, matcher: str, protocol: str, **style) -> None:

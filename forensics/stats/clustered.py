@@ -30,7 +30,7 @@ from forensics._shared.errors import InputError
 from forensics._shared.rng import RngLike, as_generator
 from forensics.stats.scores import as_scores, eer
 
-__all__ = ["PairedScores", "ClassBootstrap", "class_weights", "class_bootstrap_eer", "binned_eer"]
+__all__ = ["ClassBootstrap", "PairedScores", "binned_eer", "class_bootstrap_eer", "class_weights"]
 
 #: Bins per class pair; the binned EER of the full sample is within a bin of the exact one and the
 #: difference is removed (module notes), so this only needs to resolve the shape of the ROC near the EER.
@@ -60,7 +60,7 @@ class PairedScores:
 
     @classmethod
     def of(cls, score: ArrayLike, class_a: ArrayLike, class_b: ArrayLike, n_classes: int | None = None,
-           higher_is_similar: bool = True) -> "PairedScores":
+           higher_is_similar: bool = True) -> PairedScores:
         s = as_scores(score, "score")
         a = np.asarray(class_a, dtype=np.intp).ravel()
         b = np.asarray(class_b, dtype=np.intp).ravel()

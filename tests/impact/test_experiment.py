@@ -114,7 +114,7 @@ def test_a_realistic_sensor_shows_no_trend_and_an_extreme_one_a_rise(tmp_path):
     # common to all classes, so impostor correlations rise (the block means dilute it: seeds 7–9 all give
     # slope intervals above zero, the lowest bound +0.07 points per decade).
     assert extreme.significant and extreme.slope > 0 and extreme.change > 0
-    spread = [s for s in result.spreads if s.age == 96.0][0]
+    spread = next(s for s in result.spreads if s.age == 96.0)
     assert spread.n_sensors == 2 and spread.minimum <= spread.mean <= spread.maximum
     assert spread.mean_ci[0] <= spread.mean <= spread.mean_ci[1]
 
