@@ -25,8 +25,6 @@ Matcher specs for :func:`load_matcher`: ``masek`` | ``ko`` | ``module.path:Class
 """
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import math
 import shlex
 import subprocess
@@ -38,6 +36,7 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
+from forensics._shared.plugins import is_class_spec, load_class
 from forensics._shared.errors import InputError, UsageError
 from forensics.impact.segment import Segmentation, Segmenter
 
@@ -599,32 +598,10 @@ def load_matcher(spec: str, segmenter: Segmenter | None = None) -> Matcher:
     for prefix, similar in (("cmd:", False), ("cmd+sim:", True)):
         if spec.startswith(prefix):
             return ExternalMatcher(spec[len(prefix):].strip(), higher_is_similar=similar, name=spec)
-    where, sep, cls_name = spec.rpartition(":")
-    if not sep or not where or not cls_name.isidentifier():
+    if not is_class_spec(spec):
         raise UsageError(f"unknown matcher '{spec}'; give {SPEC_FORMS}")
-    try:
-        if where.endswith(".py"):
-            path = Path(where)
-            if not path.is_file():
-                raise UsageError(f"matcher '{spec}': no such file {where}")
-            mod_spec = importlib.util.spec_from_file_location(f"forensics_user_matcher_{path.stem}", path)
-            if mod_spec is None or mod_spec.loader is None:
-                raise UsageError(f"matcher '{spec}': cannot load {where} as Python")
-            module = importlib.util.module_from_spec(mod_spec)
-            mod_spec.loader.exec_module(module)
-        else:
-            if not all(part.isidentifier() for part in where.split(".")):
-                raise UsageError(f"unknown matcher '{spec}'; give {SPEC_FORMS}")
-            module = importlib.import_module(where)
-    except UsageError:
-        raise
-    except Exception as exc:  # any error while importing the user's code is a usage problem
-        raise UsageError(f"cannot load the matcher '{spec}': {type(exc).__name__}: {exc}") from exc
-    cls = getattr(module, cls_name, None)
-    if cls is None:
-        raise UsageError(f"matcher '{spec}': {where} has no {cls_name}")
-    if not isinstance(cls, type):
-        raise UsageError(f"matcher '{spec}': {cls_name} is not a class")
+    cls = load_class(spec, "matcher")
+    cls_name = cls.__name__
     try:
         obj = cls()
     except Exception as exc:

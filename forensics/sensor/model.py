@@ -62,8 +62,6 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-import importlib
-import importlib.util
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -429,20 +427,9 @@ def make_effect(spec: str, **params: Any) -> Effect:
         return EFFECTS[spec](**params)
     if ":" not in spec:
         raise UsageError(f"unknown effect '{spec}'; see 'forensics model effects' or give module:Class or file.py:Class")
-    where, cls_name = spec.rsplit(":", 1)
-    try:
-        if where.endswith(".py"):
-            path = Path(where)
-            if not path.is_file():
-                raise UsageError(f"{where}: no such file for the effect '{spec}'")
-            mod_spec = importlib.util.spec_from_file_location(f"forensics_user_{path.stem}", path)
-            module = importlib.util.module_from_spec(mod_spec)  # type: ignore[arg-type]
-            mod_spec.loader.exec_module(module)  # type: ignore[union-attr]
-        else:
-            module = importlib.import_module(where)
-        cls = getattr(module, cls_name)
-    except (ImportError, AttributeError, SyntaxError) as exc:
-        raise UsageError(f"cannot load the effect '{spec}': {exc}") from exc
+    from forensics._shared.plugins import load_class
+
+    cls = load_class(spec, "effect")
     if not (isinstance(cls, type) and issubclass(cls, Effect)):
         raise UsageError(f"'{spec}' is not a subclass of forensics.sensor.model.Effect")
     return cls(**params)
