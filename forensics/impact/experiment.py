@@ -333,7 +333,7 @@ def run_impact(
     sensors
         Virtual sensors (:func:`parse_sensors`).
     ages
-        Ages in years after T0; must include 0 for the ``enrol-0`` protocol.
+        Ages in years after T0 (taken in ascending order); must include 0 for the ``enrol-0`` protocol.
     matchers
         Objects with ``encode``/``compare`` (see :mod:`forensics.impact.matchers`).
     rng
@@ -352,7 +352,7 @@ def run_impact(
         Folder for resumable partial results.
     """
     started = time.perf_counter()
-    ages = [float(a) for a in ages]
+    ages = sorted(float(a) for a in ages)  # enrolment at age 0 comes first; trends read ages in order
     bad = [p for p in protocols if p not in PROTOCOLS]
     if bad:
         raise UsageError(f"unknown protocol {bad[0]!r}; choose from {', '.join(PROTOCOLS)}")
