@@ -23,6 +23,7 @@ enrolment templates) atomically; a rerun with the same settings skips them and g
 """
 from __future__ import annotations
 
+import json
 import pickle
 import time
 import zlib
@@ -49,6 +50,7 @@ from forensics.stats.clustered import (
     class_bootstrap_eer,
     class_weights,
 )
+from forensics.stats.scores import percentile_ci
 
 __all__ = [
     "PROTOCOLS",
@@ -287,8 +289,6 @@ class _Checkpoint:
         folder.mkdir(parents=True, exist_ok=True)
         stored = folder / "config.json"
         if stored.exists():
-            import json
-
             if json.loads(stored.read_text()) != json.loads(json.dumps(config, default=str)):
                 raise InputError(f"{folder}: this checkpoint was made with other settings; remove it or choose "
                                  "another folder")
@@ -442,13 +442,6 @@ def _ols_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return (xc @ (y - y.mean(axis=0))) / (xc @ xc)
 
 
-def _interval(values: np.ndarray, level: float) -> tuple[float, float]:
-    tail = 100.0 * (1.0 - level) / 2.0
-    finite = values[np.isfinite(values)]
-    lo, hi = np.percentile(finite, [tail, 100.0 - tail])
-    return float(lo), float(hi)
-
-
 def trends(result: ImpactResult) -> list[Trend]:
     """The paired trend of every (sensor, matcher, protocol) trajectory with two or more ages."""
     out = []
@@ -469,8 +462,8 @@ def trends(result: ImpactResult) -> list[Trend]:
                 below, above = np.mean(rep_slopes <= 0), np.mean(rep_slopes >= 0)
                 p = float(min(1.0, max(2 * min(below, above), 1.0 / max(rep_slopes.size, 1))))
                 change = float(y[-1] - y[0])
-                out.append(Trend(sensor, matcher, protocol, slope, _interval(rep_slopes, result.level), p, change,
-                                 _interval(reps[-1] - reps[0], result.level), result.level))
+                out.append(Trend(sensor, matcher, protocol, slope, percentile_ci(rep_slopes, result.level), p, change,
+                                 percentile_ci(reps[-1] - reps[0], result.level), result.level))
     return out
 
 
@@ -483,7 +476,7 @@ def spreads(result: ImpactResult) -> list[Spread]:
                 units = [result.unit(s, age, matcher, protocol) for s in result.sensors]
                 values = np.array([u.eer.estimate for u in units])
                 mean_reps = np.mean(np.stack([u.eer.replicates for u in units]), axis=0)
-                out.append(Spread(matcher, protocol, age, float(values.mean()), _interval(mean_reps, result.level),
+                out.append(Spread(matcher, protocol, age, float(values.mean()), percentile_ci(mean_reps, result.level),
                                   float(values.std(ddof=1)) if values.size > 1 else 0.0, float(values.min()),
                                   float(values.max()), int(values.size)))
     return out

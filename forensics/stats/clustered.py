@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from forensics._shared.errors import InputError
 from forensics._shared.rng import RngLike, as_generator
-from forensics.stats.scores import as_scores, eer
+from forensics.stats.scores import as_scores, eer, percentile_ci
 
 __all__ = ["ClassBootstrap", "PairedScores", "binned_eer", "class_bootstrap_eer", "class_weights"]
 
@@ -203,9 +203,8 @@ def class_bootstrap_eer(pairs: PairedScores, weights: NDArray[np.float64], level
     if finite.size < 0.9 * reps.size:
         raise InputError(f"{reps.size - finite.size} of {reps.size} class resamples had no genuine comparison; "
                          "the set needs more classes with two or more images")
-    tail = 100.0 * (1.0 - level) / 2.0
-    ci = tuple(float(v) for v in np.percentile(finite, [tail, 100.0 - tail]))
-    return ClassBootstrap(float(exact), ci, float(level), reps, int(genuine_scores.size), int(impostor_scores.size),
+    return ClassBootstrap(float(exact), percentile_ci(finite, level), float(level), reps,
+                          int(genuine_scores.size), int(impostor_scores.size),
                           float(abs(correction)))
 
 

@@ -79,6 +79,7 @@ __all__ = [
     "bootstrap_eer",
     "bootstrap_ci",
     "decision_threshold_at_far",
+    "percentile_ci",
 ]
 
 # Above this many scores (either class) ``eer`` avoids sorting everything and
@@ -742,9 +743,11 @@ def decision_threshold_at_far(
 # --------------------------------------------------------------------------- bootstrap
 
 
-def _percentile_ci(replicates: NDArray[np.float64], level: float) -> tuple[float, float]:
+def percentile_ci(replicates: ArrayLike, level: float) -> tuple[float, float]:
+    """Central ``level`` percentile interval of bootstrap replicates (non-finite replicates left out)."""
+    values = np.asarray(replicates, dtype=np.float64)
     tail = 100.0 * (1.0 - level) / 2.0
-    lo, hi = np.percentile(replicates, [tail, 100.0 - tail])
+    lo, hi = np.percentile(values[np.isfinite(values)], [tail, 100.0 - tail])
     return float(lo), float(hi)
 
 
@@ -832,7 +835,7 @@ def bootstrap_eer(
     i = as_scores(impostor, "impostor")
     estimate = eer(g, i).eer
     reps = _bootstrap_eer_replicates(g, i, rng, int(n_boot))
-    return BootstrapResult(float(estimate), _percentile_ci(reps, level), reps, float(level))
+    return BootstrapResult(float(estimate), percentile_ci(reps, level), reps, float(level))
 
 
 def bootstrap_ci(
@@ -893,4 +896,4 @@ def bootstrap_ci(
         estimate = float(statistic(*data))
         for b in range(n_boot):
             reps[b] = float(statistic(*(x[rng.integers(0, x.size, size=x.size)] for x in data)))
-    return BootstrapResult(estimate, _percentile_ci(reps, level), reps, float(level))
+    return BootstrapResult(estimate, percentile_ci(reps, level), reps, float(level))
