@@ -8,9 +8,10 @@ themselves beyond ``args``, call the library, and hand a result to
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from forensics._shared.progress import Progress, choose_progress
@@ -28,6 +29,42 @@ def add_output_options(parser: argparse.ArgumentParser, report: bool = True) -> 
         group.add_argument("--report", metavar="DIR", help="write an HTML report with PNG plots into DIR")
     group.add_argument("--quiet", action="store_true", help="no progress bar")
     group.add_argument("--force", action="store_true", help="replace existing outputs")
+
+
+def add_execution_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--workers N`` and ``--scheduler ADDRESS`` (the execution layer, :mod:`forensics._shared.parallel`)."""
+    group = parser.add_argument_group("execution")
+    group.add_argument("--workers", type=int, default=None, metavar="N",
+                       help="worker processes (default: every core; 1 runs everything in this process)")
+    group.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="run on a Dask cluster: its scheduler address (tcp://host:8786), or 'local' for a "
+                            "cluster on this machine (default: $FORENSICS_SCHEDULER, else local processes)")
+
+
+def add_input_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--allow-outside`` (manifest rows may name files outside the dataset folder)."""
+    parser.add_argument("--allow-outside", action="store_true",
+                        help="accept manifest rows naming files outside the dataset folder (absolute paths, '..', "
+                             "links leaving it); refused by default")
+
+
+def open_input(args: argparse.Namespace, folder: Any) -> Any:
+    """Open a dataset the way the user asked (``--allow-outside``)."""
+    from forensics.io.dataset import open_dataset
+
+    return open_dataset(folder, allow_outside=getattr(args, "allow_outside", False))
+
+
+@contextlib.contextmanager
+def executor_for(args: argparse.Namespace) -> Iterator[Any]:
+    """The command's one executor (``--workers``, ``--scheduler``); prints the Dask dashboard when a cluster is used."""
+    from forensics._shared.parallel import open_executor
+
+    with open_executor(getattr(args, "workers", None), getattr(args, "scheduler", None)) as executor:
+        if executor.backend == "dask":
+            run = executor.info()
+            info(args, f"Dask cluster {run.scheduler} ({run.workers} workers); dashboard: {run.dashboard}")
+        yield executor
 
 
 def command_parser(subparsers: Any, name: str, help: str, example: str, description: str | None = None) -> argparse.ArgumentParser:

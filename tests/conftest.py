@@ -42,3 +42,15 @@ def dresden_or_skip() -> Path:
     if not path.is_dir():
         pytest.skip(f"real-camera data not found at {path} (present in CI; absent on a fresh machine)")
     return path
+
+
+@pytest.fixture(scope="session")
+def dask_cluster():
+    """A ``dask.distributed.LocalCluster`` with two single-threaded worker processes (one per test session)."""
+    distributed = pytest.importorskip("distributed", reason="dask[distributed] is a test dependency")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                       dashboard_address=":0", silence_logs=40)
+    try:
+        yield cluster
+    finally:
+        cluster.close()

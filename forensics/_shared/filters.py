@@ -11,7 +11,6 @@ selection per pixel; scikit-image's rank filters need integer images).
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from functools import lru_cache
 from concurrent.futures import ThreadPoolExecutor
@@ -21,6 +20,7 @@ import numpy as np
 from scipy import ndimage
 
 from forensics._shared.errors import UsageError
+from forensics._shared.parallel import thread_budget
 
 #: Largest kernel evaluated by the comparator network; larger ones use scipy.
 NETWORK_MAX_Q = 11
@@ -210,51 +210,8 @@ def _program(q: int, th: int, tw: int) -> _Program:
     return _Program(steps, slots, length, slot[out[0]], (lo_in, hi_in), row)
 
 
-#: Below this many pixels the median runs in one process (forking costs more than it saves).
+#: Below this many pixels the median runs in one thread (starting threads costs more than it saves).
 PARALLEL_MIN_PIXELS = 2_000_000
-
-
-def _can_fork() -> bool:
-    import sys
-
-    return sys.platform.startswith("linux") and hasattr(os, "fork")
-
-
-def _forked(work: Any, tiles: list, workers: int, result: np.ndarray) -> np.ndarray:
-    """Run ``work`` over interleaved tile lists in ``workers`` processes writing one shared output.
-
-    NumPy holds the GIL between its (short) ufunc calls, so threads barely
-    overlap; forked children share the input copy-on-write and write their
-    tiles into an anonymous shared mapping.  A child that fails makes the
-    parent redo its tiles.
-    """
-    import mmap
-
-    shared = mmap.mmap(-1, result.nbytes)
-    out = np.frombuffer(shared, dtype=np.float32).reshape(result.shape)
-    chunks = [tiles[i::workers] for i in range(workers)]
-    children = []
-    for chunk in chunks[1:]:
-        pid = os.fork()
-        if pid == 0:  # child: compute, write, leave without any cleanup
-            code = 1
-            try:
-                work(chunk, out)
-                code = 0
-            finally:
-                os._exit(code)
-        children.append((pid, chunk))
-    try:
-        work(chunks[0], out)
-    finally:
-        statuses = [(os.waitpid(pid, 0)[1], chunk) for pid, chunk in children]
-    for status, chunk in statuses:
-        if status != 0:
-            work(chunk, out)
-    final = np.array(out)  # copy out of the mapping before it is closed
-    del out
-    shared.close()
-    return final
 
 
 def median_filter(image: np.ndarray, q: int = DEFAULT_Q, threads: int | None = None,
@@ -269,9 +226,11 @@ def median_filter(image: np.ndarray, q: int = DEFAULT_Q, threads: int | None = N
         Odd kernel size.  Up to :data:`NETWORK_MAX_Q` a pruned comparator network
         is used; larger kernels fall back to :func:`scipy.ndimage.median_filter`.
     threads
-        Parallel workers over tiles (default: number of CPUs, at most 4).  On
-        Linux, images of ≥ 2 MP are split over forked processes (NumPy's
-        per-call overhead holds the GIL, so threads hardly overlap); elsewhere threads.
+        Threads over tiles for images of ≥ 2 MP (default
+        :func:`~forensics._shared.parallel.thread_budget`).  NumPy's short
+        per-tile calls hold the GIL much of the time, so threads overlap only
+        partly; batch work gets its parallelism from the execution layer
+        (one image per worker), which owns every process pool.
     tile
         Output tile (rows, columns) per network evaluation; the default keeps
         the working set in a 2 MB L2 cache.
@@ -316,11 +275,9 @@ def median_filter(image: np.ndarray, q: int = DEFAULT_Q, threads: int | None = N
             out[:n] = buffers[prog.out_slot][:n]
             target[y:y + hh, x:x + ww] = out.reshape(hh, prog.row)[:, :ww]
 
-    workers = max(1, min(threads or min(os.cpu_count() or 1, 4), len(tiles)))
+    workers = max(1, min(threads or thread_budget(4), len(tiles)))
     if workers == 1 or height * width < PARALLEL_MIN_PIXELS:
         work(tiles)
-    elif _can_fork():
-        result = _forked(work, tiles, workers, result)
     else:
         with ThreadPoolExecutor(workers) as pool:
             list(pool.map(work, [tiles[i::workers] for i in range(workers)]))

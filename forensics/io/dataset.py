@@ -303,10 +303,13 @@ def list_images(folder: Path) -> list[Path]:
     )
 
 
-def open_dataset(folder: str | os.PathLike) -> Dataset:
+def open_dataset(folder: str | os.PathLike, allow_outside: bool = False) -> Dataset:
     """Open a dataset folder (see the module docstring for the format).
 
-    Nothing is decoded here; the manifest is validated completely.
+    Nothing is decoded here; the manifest is validated completely.  A manifest is often written by another
+    tool and read by many machines, so a row naming a file outside the folder — an absolute path, ``../``,
+    or a symbolic link that leaves it — is refused unless ``allow_outside`` (``--allow-outside``).  A folder
+    without a manifest is the user's own listing and is taken as it is.
 
     Raises
     ------
@@ -324,10 +327,10 @@ def open_dataset(folder: str | os.PathLike) -> Dataset:
         if not paths:
             raise InputError(f"{root}: no images found; add PNG/TIFF/JPEG/BMP/raw files or a manifest.csv")
         return Dataset(root, [Frame(path=p, file=p.name) for p in paths], has_manifest=False)
-    return Dataset(root, _read_manifest(root, manifest), has_manifest=True)
+    return Dataset(root, _read_manifest(root, manifest, allow_outside), has_manifest=True)
 
 
-def _read_manifest(root: Path, manifest: Path) -> list[Frame]:
+def _read_manifest(root: Path, manifest: Path, allow_outside: bool = False) -> list[Frame]:
     with open(manifest, newline="", encoding="utf-8-sig") as handle:
         reader = csv.DictReader(handle)
         header = [h.strip() for h in (reader.fieldnames or [])]
@@ -336,19 +339,23 @@ def _read_manifest(root: Path, manifest: Path) -> list[Frame]:
         reader.fieldnames = header
         frames = []
         for row_number, row in enumerate(reader, start=2):
-            frames.append(_frame_from_row(root, manifest, row_number, row))
+            frames.append(_frame_from_row(root, manifest, row_number, row, allow_outside))
     if not frames:
         raise InputError(f"{manifest}: no rows; list one image per row under the header")
     return frames
 
 
-def _frame_from_row(root: Path, manifest: Path, row_number: int, row: dict[str, Any]) -> Frame:
+def _frame_from_row(root: Path, manifest: Path, row_number: int, row: dict[str, Any],
+                    allow_outside: bool = False) -> Frame:
     where = f"{manifest}, line {row_number}"
     values = {k: (v or "").strip() for k, v in row.items() if k is not None}
     name = values.get("file", "")
     if not name:
         raise InputError(f"{where}: field 'file' is empty; give the image's path relative to the folder")
     path = root / name
+    if not allow_outside and not _inside(root, path):
+        raise InputError(f"{where}: file '{name}' lies outside the dataset folder {root} (absolute path, '..' or a "
+                         "link leaving it); move it into the folder or pass --allow-outside")
     if not path.is_file():
         raise InputError(f"{where}: file '{name}' does not exist in {root}; fix the row or add the file")
     numbers: dict[str, float | None] = {}
@@ -384,6 +391,11 @@ def _frame_from_row(root: Path, manifest: Path, row_number: int, row: dict[str, 
         _exposure_s=numbers["exposure_s"],
         _iso=numbers["iso"],
     )
+
+
+def _inside(root: Path, path: Path) -> bool:
+    """Whether ``path`` (symbolic links followed) lies inside ``root``."""
+    return path.resolve().is_relative_to(root.resolve())
 
 
 def write_manifest(path: str | os.PathLike, rows: list[dict[str, Any]], force: bool = False) -> Path:

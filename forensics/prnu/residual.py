@@ -64,6 +64,7 @@ from scipy import ndimage
 
 from forensics._shared.errors import InputError
 from forensics._shared.arrays import full_scale, grey_luma
+from forensics._shared.parallel import thread_budget
 
 __all__ = [
     "LEVELS",
@@ -91,12 +92,9 @@ _POOLS_LOCK = threading.Lock()
 
 
 def default_workers() -> int:
-    """Number of threads used when ``workers`` is None: the CPUs this process may use, at most 4."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - non-Linux
-        n = os.cpu_count() or 1
-    return max(1, min(4, n))
+    """Number of threads used when ``workers`` is None: the CPUs this process may use, at most 4 — or a
+    worker's share of them under the execution layer (:func:`forensics._shared.parallel.thread_budget`)."""
+    return thread_budget(4)
 
 
 def _pool(workers: int) -> ThreadPoolExecutor | None:

@@ -127,3 +127,23 @@ def test_write_manifest_round_trip(tmp_path):
     ds = open_dataset(tmp_path)
     assert [f.captured for f in ds] == [2001.25, 2002.0]
     assert ds[0].extra["extra_col"] == "x" and ds[1].iso == 100
+
+
+def test_manifest_paths_leaving_the_folder_are_refused(tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    write_image(outside / "secret.png", np.zeros((8, 10), np.uint8))
+    root = tmp_path / "set"
+    _folder(root, n=2)
+    (root / "link.png").symlink_to(outside / "secret.png")
+    rows = {"dotdot": "../outside/secret.png", "absolute": str(outside / "secret.png"), "symlink": "link.png"}
+    for kind, name in rows.items():
+        (root / "manifest.csv").write_text(f"file,device\nf0.png,a\n{name},a\n")
+        with pytest.raises(InputError, match=r"manifest.csv, line 3: file .* outside the dataset folder.*--allow-outside"):
+            open_dataset(root)
+        ds = open_dataset(root, allow_outside=True)
+        assert ds[1].path.resolve() == (outside / "secret.png").resolve(), kind
+    # A path that only passes through '..' but ends inside stays allowed, and so do links within the folder.
+    (root / "inner.png").symlink_to(root / "f1.png")
+    (root / "manifest.csv").write_text("file\nf0.png\n../set/f1.png\ninner.png\n")
+    assert len(open_dataset(root)) == 3
