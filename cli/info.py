@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from forensics.cli.common import add_output_options, command_parser, emit
+from forensics.cli.common import add_input_options, add_output_options, command_parser, emit, open_input
 
 
 def register(sub) -> None:
@@ -13,12 +13,12 @@ def register(sub) -> None:
                             "Size, dtype, devices, capture dates, epochs and acquisition conditions of a dataset "
                             "(or the header, EXIF and CFA layout of one file).")
     parser.add_argument("path", help="dataset folder or image file")
+    add_input_options(parser)
     add_output_options(parser, report=False)
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from forensics.io.dataset import open_dataset
     from forensics.io.describe import summarize_dataset, summarize_file
 
     path = Path(args.path)
@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
         data = summarize_file(path)
         emit(args, lambda: "\n".join(f"{k:>12}: {v}" for k, v in data.items() if v not in (None, {}, [])), data)
         return 0
-    summary = summarize_dataset(open_dataset(path))
+    summary = summarize_dataset(open_input(args, path))
 
     def text() -> str:
         s = summary

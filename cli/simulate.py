@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import argparse
 
-from forensics.cli.common import add_output_options, command_parser, emit, progress_for
+from forensics.cli.common import (add_execution_options, add_input_options, add_output_options, command_parser, emit,
+                                  executor_for, info, open_input, progress_for)
 
 
 def register(sub) -> None:
@@ -14,7 +15,10 @@ def register(sub) -> None:
     age = command_parser(inner, "age", "age a folder of images with a virtual sensor",
                          "forensics simulate age scenes/ aged/ --sensor A --years 0:96:8 --seed 1",
                          "Write one dataset per time step (images + manifest.csv with 'captured'), the ground-truth "
-                         "defect catalogue defects.csv and sensor.json.  Source images must be 8- or 16-bit and one size.")
+                         "defect catalogue defects.csv and sensor.json.  Source images must be 8- or 16-bit and one size.  "
+                         "Images are aged in parallel (one task per source image; --workers, --scheduler); the "
+                         "output is built in .OUT.partial beside it, and an interrupted run resumes from the images "
+                         "already aged when the same command is run again.")
     age.add_argument("src", help="source dataset folder (images captured at T0)")
     age.add_argument("out", help="output folder (created; refused if it exists unless --force)")
     age.add_argument("--sensor", default="A", help="virtual sensor of the paper's table 4: A–H (default A)")
@@ -24,6 +28,8 @@ def register(sub) -> None:
     age.add_argument("--counting", choices=["poisson", "deterministic"], default="poisson",
                      help="Poisson arrival counts (default) or the paper's deterministic (T − T0)·λ")
     age.add_argument("--rate-scale", type=float, default=1.0, help="multiply the preset's rates (default 1)")
+    add_input_options(age)
+    add_execution_options(age)
     add_output_options(age, report=False)
     age.set_defaults(handler=run_age)
 
@@ -75,18 +81,25 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def run_age(args: argparse.Namespace) -> int:
-    from forensics.io.dataset import open_dataset
+    from pathlib import Path
+
     from forensics.sensor.presets import preset
     from forensics.sensor.simulate import age_dataset, parse_years, source_bit_depth
 
-    source = open_dataset(args.src)
+    source = open_input(args, args.src)
     ages = parse_years(args.years)
     shape = source.shape()
     bits = source_bit_depth(source.frames[0].info().dtype)
     model = preset(args.sensor, shape[:2], bit_depth=bits, t0=args.start, counting=args.counting,
                    rate_scale=args.rate_scale)
-    result = age_dataset(source, args.out, model, ages, args.seed, start_year=args.start,
-                         sensor_name=args.sensor.upper(), force=args.force, progress=progress_for(args))
+    partial = Path(args.out).with_name(f".{Path(args.out).name}.partial")
+    if partial.exists():
+        info(args, f"resuming from {partial}")
+    with executor_for(args) as executor:
+        result = age_dataset(source, args.out, model, ages, args.seed, start_year=args.start,
+                             sensor_name=args.sensor.upper(), force=args.force, progress=progress_for(args),
+                             executor=executor)
+        execution = executor.info().to_dict()
 
     def summary() -> str:
         lines = [f"Aged {result.n_images} images of {shape[1]}×{shape[0]} ({bits}-bit) with sensor "
@@ -97,7 +110,7 @@ def run_age(args: argparse.Namespace) -> int:
         lines.append(f"ground truth: {result.out / 'defects.csv'}, {result.out / 'sensor.json'}")
         return "\n".join(lines)
 
-    emit(args, summary, result.to_dict())
+    emit(args, summary, {**result.to_dict(), "execution": execution})
     return 0
 
 

@@ -38,6 +38,7 @@ import hashlib
 import json
 import os
 import pickle
+import shutil
 import sys
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
@@ -131,6 +132,46 @@ class Checkpoint:
     def completed(self) -> int:
         """Number of finished items on disk."""
         return sum(1 for _ in self.folder.glob("item-*.pkl"))
+
+
+@contextlib.contextmanager
+def resumable_directory(out: str | os.PathLike, config: dict[str, Any], force: bool = False
+                        ) -> Iterator[tuple[Path, Checkpoint]]:
+    """An output folder built in a fixed working folder beside it (``.OUT.partial``) that survives interruption.
+
+    Yields ``(work, checkpoint)``: write the outputs into ``work`` and record each finished item in
+    ``checkpoint``.  On success ``work`` is renamed onto ``out`` (replacing it only with ``force``), so the
+    output appears whole or not at all.  On an interruption or a crash the working folder stays, and the
+    same command run again resumes from the finished items (the checkpoint refuses other settings).  Errors
+    in the input (:class:`~forensics._shared.errors.InputError`, :class:`UsageError`) cannot be resumed and
+    remove it.
+    """
+    from forensics._shared.atomic import refuse_existing
+    from forensics._shared.errors import InputError
+
+    out = refuse_existing(out, force)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    work = out.with_name(f".{out.name}.partial")
+    if force and work.exists():
+        try:
+            Checkpoint(work / ".items", config)
+        except UsageError:  # made with other settings: start again
+            shutil.rmtree(work)
+    work.mkdir(exist_ok=True)
+    checkpoint = Checkpoint(work / ".items", config)
+    try:
+        yield work, checkpoint
+    except (InputError, UsageError):
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    shutil.rmtree(work / ".items")
+    if out.exists():
+        old = out.with_name(f".{out.name}.old-{os.getpid()}")
+        os.replace(out, old)
+        os.replace(work, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(work, out)
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -429,7 +470,9 @@ class Executor:
         def submit(i: int) -> Any:
             key = f"forensics-{name}-{token}-{i}"
             index_of[key] = i
-            return client.submit(_run_dask_item, fn, items[i], key=key, pure=False, retries=self.retries, **kwargs)
+            # No task retries: an exception is an answer (bad input); a lost worker is rescheduled by the
+            # scheduler itself (distributed.scheduler.allowed-failures).
+            return client.submit(_run_dask_item, fn, items[i], key=key, pure=False, **kwargs)
 
         window = self._window_size()
         stream = as_completed([submit(queue.pop(0)) for _ in range(min(window, len(queue)))], loop=client.loop)

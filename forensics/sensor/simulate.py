@@ -19,6 +19,7 @@ import numpy as np
 
 from forensics import __version__
 from forensics._shared.atomic import atomic_directory, refuse_inputs, write_json
+from forensics._shared.parallel import Executor, resolve, resumable_directory
 from forensics.io.dataset import Dataset, write_manifest
 from forensics._shared.errors import InputError
 from forensics.io.images import write_image
@@ -95,15 +96,18 @@ def age_dataset(
     force: bool = False,
     progress: Progress = no_progress,
     image_format: str | None = None,
+    executor: Executor | None = None,
 ) -> AgeingResult:
     """Age every image of ``source`` over ``ages`` (years after T0) and write one dataset per age.
 
     Parameters
     ----------
     source
-        Images captured at T0 (all one size).  Each is read once.
+        Images captured at T0 (all one size).  Each is read once, by the worker that ages it.
     out
-        Output folder (written atomically; refused if it exists unless ``force``).
+        Output folder (refused if it exists unless ``force``).  It is built in ``.OUT.partial`` beside it and
+        renamed into place when complete; an interrupted run leaves that folder, and the same call made
+        again resumes from the images already aged (other settings are refused).
     model
         The sensor model; its ``shape`` must match the images and its ``t0`` is T0.
     ages
@@ -111,11 +115,15 @@ def age_dataset(
     rng
         Generator or integer seed of the device's random history (drawn from ``rng`` itself) and of the
         per-frame noise (image ``i`` at step ``j`` from the sub-stream ``(i, j)`` of
-        :func:`~forensics._shared.rng.keyed_generator`: ``default_rng([seed, i, j])`` for an integer seed).
+        :func:`~forensics._shared.rng.keyed_generator`: ``default_rng([seed, i, j])`` for an integer seed),
+        so the images are identical whichever backend and however many workers age them.
     start_year
         Decimal year of T0 written into the manifests (default ``model.t0``).
     image_format
         Extension of the outputs (default: the source's if PNG/TIFF, else ``.png``).
+    executor
+        Where the images are aged (:mod:`forensics._shared.parallel`; default in this process).  One item
+        per source image; the device is shipped once per worker.
 
     Writes ``OUT/year_NNN/`` (images + ``manifest.csv``), ``OUT/defects.csv``
     (the ground-truth catalogue: x, y, kind, amplitude, onset_year) and
@@ -139,35 +147,67 @@ def age_dataset(
     device = model.realize(as_generator(rng), times)
     contexts = [device.context(t) for t in times]
     names = [step_name(a) for a in ages]
-    rows: list[list[dict[str, Any]]] = [[] for _ in ages]
-    with atomic_directory(out, force=force) as tmp:
+    files = [_output_name(frame, image_format) for frame in source.frames]
+    if len(set(files)) != len(files):
+        duplicate = next(f for f in files if files.count(f) > 1)
+        raise InputError(f"{source.root}: two source images would both be written as '{duplicate}'; "
+                         "give them different names")
+    sensor = {"size": {"width": model.shape[1], "height": model.shape[0], "channels": 1 if len(shape) == 2 else shape[2]},
+              "sensor": sensor_name, "seed": seed, "t0": t0, "ages": list(ages), "model": model.to_dict(),
+              "source": str(source.root), "forensics_version": __version__}
+    config = {**sensor, "files": [f.file for f in source.frames], "outputs": files}
+    with resumable_directory(out, config, force=force) as (work, checkpoint):
         for name in names:
-            (tmp / name).mkdir()
-        for index, frame in enumerate(progress(source.frames, total=len(source), desc="ageing")):
-            image = frame.load()
-            if image.dtype != first_dtype or image.shape != shape:
-                raise InputError(f"{frame.path}: {image.dtype} {image.shape} differs from the first image "
-                                 f"({first_dtype} {shape}); a source set must be uniform")
-            ext = image_format or (frame.path.suffix.lower() if frame.path.suffix.lower() in (".png", ".tif", ".tiff") else ".png")
-            stem = Path(frame.file).stem
-            for step, (aged, ctx, name) in enumerate(zip(aged_exposures(device, image, contexts, rng, index),
-                                                         contexts, names)):
-                fname = f"{stem}{ext}"
-                write_image(tmp / name / fname, aged)
-                rows[step].append({"file": fname, "device": _device_name(sensor_name, seed),
-                                   "captured": ctx.time, "exposure_s": frame.exposure_s, "iso": frame.iso,
-                                   "temperature_c": frame.temperature_c, "subject": frame.subject,
-                                   "source_file": frame.file, "age_years": ages[step]})
-        for name, step_rows in zip(names, rows):
-            write_manifest(tmp / name / "manifest.csv", step_rows)
-        write_catalogue(tmp / "defects.csv", device)
-        sensor = {"size": {"width": model.shape[1], "height": model.shape[0], "channels": 1 if len(shape) == 2 else shape[2]},
-                  "sensor": sensor_name, "seed": seed, "t0": t0, "ages": ages, "model": model.to_dict(),
-                  "source": str(source.root), "forensics_version": __version__}
-        write_json(tmp / "sensor.json", sensor)
+            (work / name).mkdir(exist_ok=True)
+        job = _AgeingJob(device, contexts, names, rng, first_dtype.str, tuple(shape), str(work))
+        items = [(index, str(frame.path), fname) for index, (frame, fname) in enumerate(zip(source.frames, files))]
+        for _ in resolve(executor).map(_age_one_image, items, shared=job, progress=progress, desc="ageing",
+                                       checkpoint=checkpoint):
+            pass
+        for step, name in enumerate(names):
+            rows = [{"file": fname, "device": _device_name(sensor_name, seed), "captured": contexts[step].time,
+                     "exposure_s": frame.exposure_s, "iso": frame.iso, "temperature_c": frame.temperature_c,
+                     "subject": frame.subject, "source_file": frame.file, "age_years": ages[step]}
+                    for frame, fname in zip(source.frames, files)]
+            write_manifest(work / name / "manifest.csv", rows, force=True)
+        write_catalogue(work / "defects.csv", device, force=True)
+        write_json(work / "sensor.json", sensor, force=True)
     counts = {"partial": [int(c) for c in device.catalogue.counts(times, kind=0)],
               "stuck": [int(c) for c in device.catalogue.counts(times, kind=1)]}
     return AgeingResult(out, [out / n for n in names], list(ages), len(source), len(device.catalogue), counts, sensor)
+
+
+def _output_name(frame: Any, image_format: str | None) -> str:
+    suffix = frame.path.suffix.lower()
+    ext = image_format or (suffix if suffix in (".png", ".tif", ".tiff") else ".png")
+    return f"{Path(frame.file).stem}{ext}"
+
+
+@dataclass
+class _AgeingJob:
+    """What every ageing worker needs once: the device, the sample contexts and where to write."""
+
+    device: Device
+    contexts: list
+    names: list[str]
+    rng: RngLike
+    dtype: str
+    shape: tuple[int, ...]
+    work: str
+
+
+def _age_one_image(job: _AgeingJob, item: tuple[int, str, str]) -> None:
+    """Read source image ``index`` from its path, age it at every step, write one file per step."""
+    from forensics.io.images import read_image
+
+    index, path, fname = item
+    image = read_image(path)
+    if image.dtype.str != job.dtype or image.shape != job.shape:
+        raise InputError(f"{path}: {image.dtype} {image.shape} differs from the first image "
+                         f"({np.dtype(job.dtype)} {job.shape}); a source set must be uniform")
+    for aged, name in zip(aged_exposures(job.device, image, job.contexts, job.rng, index), job.names):
+        # Overwrite: a resumed run may find the file of an item that was interrupted half-way.
+        write_image(Path(job.work) / name / fname, aged, force=True)
 
 
 def aged_exposures(device: Device, image: np.ndarray, contexts: list, rng: RngLike, index: int,
