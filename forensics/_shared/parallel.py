@@ -253,7 +253,8 @@ class Executor:
     retries
         Times an item is resubmitted after its worker died.
     window
-        Items in flight at once (default 4 per worker): bounds the memory of out-of-order results.
+        Items in flight at once (default 4 per worker process, 16 per Dask thread): bounds the memory of
+        out-of-order results.
     """
 
     def __init__(self, backend: str = "in-process", workers: int = 1, scheduler: str | None = None,
@@ -407,7 +408,9 @@ class Executor:
 
     # -- backends ----------------------------------------------------------------------------------------------
     def _window_size(self) -> int:
-        return self._window or 4 * self._slots()
+        # Enough items in flight to hide the round trip to the workers (longer for Dask's scheduler), few
+        # enough that out-of-order results held for ordering stay small.
+        return self._window or (16 if self.backend == "dask" else 4) * self._slots()
 
     def _process_completions(self, fn: Callable[..., Any], items: list[Any], todo: list[int],
                              shared: Any) -> Iterator[tuple[int, Any]]:
