@@ -4,7 +4,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.common import (
+    add_execution_options,
+    add_input_options,
+    add_output_options,
+    command_parser,
+    emit,
+    executor_for,
+    info,
+    open_input,
+    progress_for,
+    warn,
+)
 from forensics.cli.defects import add_detection_options, detection_kwargs
 
 
@@ -23,13 +34,14 @@ def register(sub) -> None:
     src.add_argument("--reference", nargs="+", metavar="SET", help="two or more reference sets of the device")
     src.add_argument("--model", metavar="FILE", help="growth model saved by 'forensics defects growth -o FILE'")
     add_detection_options(parser)
+    add_input_options(parser)
+    add_execution_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
-    from forensics.io.dataset import open_dataset
     from forensics.defects.dating import date_dataset, date_image
     from forensics._shared.errors import InputError, UsageError
     from forensics.defects.growth import GrowthModel, epochs_from_datasets, estimate_growth
@@ -44,21 +56,23 @@ def run(args: argparse.Namespace) -> int:
     progress = progress_for(args)
     if args.model:
         model = GrowthModel.load(args.model)
-    else:
-        if len(args.reference) < 2:
-            raise UsageError("--reference needs at least two sets taken at different dates")
-        epochs = epochs_from_datasets([open_dataset(p) for p in args.reference], progress=progress,
-                                      **detection_kwargs(args))
-        growth = estimate_growth(epochs)
-        for message in dict.fromkeys(growth.warnings):
-            warn(message)
-        model = growth.model()
-    if query.is_dir():
-        result = date_dataset(model, open_dataset(query), progress=progress)
-    else:
-        image = read_image(query)
-        cfa = read_raw(query).cfa_pattern if is_raw(query) else None
-        result = date_image(model, image, cfa)
+    elif len(args.reference) < 2:
+        raise UsageError("--reference needs at least two sets taken at different dates")
+    with executor_for(args) as ex:
+        if not args.model:
+            epochs = epochs_from_datasets([open_input(args, p) for p in args.reference], progress=progress,
+                                          executor=ex, **detection_kwargs(args))
+            growth = estimate_growth(epochs)
+            for message in dict.fromkeys(growth.warnings):
+                warn(message)
+            model = growth.model()
+        if query.is_dir():
+            result = date_dataset(model, open_input(args, query), progress=progress, executor=ex)
+        else:
+            image = read_image(query)
+            cfa = read_raw(query).cfa_pattern if is_raw(query) else None
+            result = date_image(model, image, cfa)
+        execution = ex.info().to_dict()
     for message in result.warnings:
         warn(message)
 
@@ -74,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{post[result.best]:.2f}); {result.n_defects} catalogued defects in {len(result.groups)} groups"
         return text
 
-    emit(args, summary, lambda: {"query": str(query), **result.to_dict()})
+    emit(args, summary, lambda: {"query": str(query), **result.to_dict(), "execution": execution})
     if args.report:
         path = dating_report(model, result, str(query)).write(args.report, force=args.force)
         info(args, f"report: {path}")

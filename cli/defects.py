@@ -3,7 +3,18 @@ from __future__ import annotations
 
 import argparse
 
-from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.common import (
+    add_execution_options,
+    add_input_options,
+    add_output_options,
+    command_parser,
+    emit,
+    executor_for,
+    info,
+    open_input,
+    progress_for,
+    warn,
+)
 
 
 def add_detection_options(parser: argparse.ArgumentParser) -> None:
@@ -45,6 +56,8 @@ def register(sub) -> None:
         "channel. Use at least 10 images, better 50 or more.")
     det.add_argument("set", help="dataset folder (images of one device, one size; manifest.csv optional)")
     add_detection_options(det)
+    add_input_options(det)
+    add_execution_options(det)
     add_output_options(det)
     det.set_defaults(handler=run_detect)
 
@@ -58,23 +71,26 @@ def register(sub) -> None:
     gro.add_argument("sets", nargs="+", metavar="SET", help="two or more dataset folders, one per epoch")
     gro.add_argument("-o", "--output", metavar="MODEL.json", help="save the growth model (for forensics date --model)")
     add_detection_options(gro)
+    add_input_options(gro)
+    add_execution_options(gro)
     add_output_options(gro)
     gro.set_defaults(handler=run_growth)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
 
 def run_detect(args: argparse.Namespace) -> int:
-    from forensics.io.dataset import open_dataset
     from forensics.defects.detection import detect_dataset
     from forensics.report.defects import detection_report
     from forensics.sensor.catalogue import PARTIAL, STUCK
 
-    ds = open_dataset(args.set)
+    ds = open_input(args, args.set)
     if args.report:
         from forensics._shared.atomic import refuse_existing
 
         refuse_existing(args.report, args.force)
-    result = detect_dataset(ds, progress=progress_for(args), **detection_kwargs(args))
+    with executor_for(args) as ex:
+        result = detect_dataset(ds, progress=progress_for(args), executor=ex, **detection_kwargs(args))
+        execution = ex.info().to_dict()
     for message in result.warnings:
         warn(message)
 
@@ -93,7 +109,7 @@ def run_detect(args: argparse.Namespace) -> int:
                 lines.append(f"… {len(result.x) - 20} more (--json for all)")
         return "\n".join(lines)
 
-    emit(args, summary, lambda: {"set": str(ds.root), **result.to_dict()})
+    emit(args, summary, lambda: {"set": str(ds.root), **result.to_dict(), "execution": execution})
     if args.report:
         path = detection_report(result, source=str(ds.root)).write(args.report, force=args.force)
         info(args, f"report: {path}")
@@ -102,7 +118,6 @@ def run_detect(args: argparse.Namespace) -> int:
 
 def run_growth(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
-    from forensics.io.dataset import open_dataset
     from forensics._shared.errors import UsageError
     from forensics.defects.growth import epochs_from_datasets, estimate_growth
     from forensics.report.defects import growth_report
@@ -113,8 +128,10 @@ def run_growth(args: argparse.Namespace) -> int:
         refuse_existing(args.output, args.force)
     if args.report:
         refuse_existing(args.report, args.force)
-    datasets = [open_dataset(p) for p in args.sets]
-    epochs = epochs_from_datasets(datasets, progress=progress_for(args), **detection_kwargs(args))
+    datasets = [open_input(args, p) for p in args.sets]
+    with executor_for(args) as ex:
+        epochs = epochs_from_datasets(datasets, progress=progress_for(args), executor=ex, **detection_kwargs(args))
+        execution = ex.info().to_dict()
     result = estimate_growth(epochs)
     for message in dict.fromkeys(result.warnings):
         warn(message)
@@ -147,7 +164,7 @@ def run_growth(args: argparse.Namespace) -> int:
             lines.append(f"growth model: {args.output}")
         return "\n".join(lines)
 
-    emit(args, summary, lambda: {**result.to_dict(), "model": args.output})
+    emit(args, summary, lambda: {**result.to_dict(), "model": args.output, "execution": execution})
     if args.report:
         path = growth_report(result, epochs=epochs).write(args.report, force=args.force)
         info(args, f"report: {path}")

@@ -12,7 +12,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     submod_attrs={
         "dating": ["ImageDating", "SetDating", "date_dataset", "date_image", "date_set"],
         "detection": [
-            "DEFAULT_Q", "DEFAULT_SIGMA", "ChannelFit", "DetectionResult", "MaskSpec", "detect", "detect_dataset",
+            "DEFAULT_Q", "DEFAULT_SIGMA", "ChannelFit", "DetectionResult", "MaskSpec", "detect", "detect_dataset", "detect_datasets",
             "parse_mask", "robust_normal",
         ],
         "growth": [

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
@@ -40,6 +40,9 @@ from forensics.defects.growth import Z_RECHECK, GrowthModel, _z_at
 from forensics.stats.counts import LEVEL, midp_binomial
 from forensics.sensor.catalogue import STUCK
 from forensics._shared.progress import Progress, no_progress
+
+if TYPE_CHECKING:
+    from forensics._shared.parallel import Executor
 
 #: Weight of the "anything else" component in the per-defect likelihoods (texture, edges).
 CONTAMINATION = 0.02
@@ -164,8 +167,10 @@ def _position(i: int, m: int, dates: list[float], first: np.ndarray, present: np
             "uniform onsets within the interval: mid-p binomial interval on the fraction of its new defects present")
 
 
-def date_dataset(model: GrowthModel, ds: Any, level: float = LEVEL, progress: Progress = no_progress) -> SetDating:
-    """Detect defects in a query dataset with the model's settings, then :func:`date_set`."""
+def date_dataset(model: GrowthModel, ds: Any, level: float = LEVEL, progress: Progress = no_progress,
+                 executor: Executor | None = None) -> SetDating:
+    """Detect defects in a query dataset with the model's settings (frames read on ``executor``), then
+    :func:`date_set`."""
     from forensics.defects.growth import dataset_device
 
     device = dataset_device(ds)
@@ -174,7 +179,7 @@ def date_dataset(model: GrowthModel, ds: Any, level: float = LEVEL, progress: Pr
     det = model.detection
     query = detect_dataset(ds, q=int(det.get("q", 9)), sigma=det.get("sigma"), tau=det.get("tau"),
                            mask=model.mask_spec(), stuck_tolerance=float(det.get("stuck_tolerance", 0.0)),
-                           progress=progress)
+                           progress=progress, executor=executor)
     return date_set(model, query, level)
 
 

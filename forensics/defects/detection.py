@@ -28,11 +28,10 @@ output (scipy's ``mode='reflect'`` boundary).
 from __future__ import annotations
 
 import os
-import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage, stats
@@ -42,7 +41,10 @@ from forensics._shared.errors import InputError, UsageError
 from forensics._shared.filters import median_filter
 from forensics.sensor.catalogue import KIND_NAMES, PARTIAL, STUCK
 from forensics._shared.progress import Progress, no_progress
-from forensics.io.stack import StackAccumulator, StackStats
+from forensics.io.stack import StackStats, prefetch, stack_sets  # noqa: F401  (prefetch: kept importable from here)
+
+if TYPE_CHECKING:
+    from forensics._shared.parallel import Executor
 
 DEFAULT_Q = 9
 DEFAULT_SIGMA = 5.0
@@ -453,44 +455,6 @@ def detect(stack: StackStats, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_
 
 
 # =========================================================================== streaming from a dataset
-def prefetch(items: Iterable[Any], depth: int = 2) -> Iterator[Any]:
-    """Yield ``items`` while a background thread produces the next ``depth`` ones (decoding overlaps computing)."""
-    import queue
-
-    box: queue.Queue = queue.Queue(maxsize=depth)
-    done = object()
-    stop = threading.Event()
-
-    def produce() -> None:
-        try:
-            for item in items:
-                if stop.is_set():
-                    return
-                box.put((True, item))
-        except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
-            box.put((False, exc))
-            return
-        box.put((True, done))
-
-    worker = threading.Thread(target=produce, daemon=True)
-    worker.start()
-    try:
-        while True:
-            ok, item = box.get()
-            if not ok:
-                raise item
-            if item is done:
-                return
-            yield item
-    finally:
-        stop.set()
-        while worker.is_alive():
-            try:
-                box.get_nowait()
-            except Exception:  # noqa: BLE001
-                worker.join(0.01)
-
-
 def dataset_cfa(ds: Any) -> str | None:
     """The CFA pattern when the dataset's frames are raw mosaics, else None."""
     from forensics.io.images import is_raw, read_raw
@@ -500,25 +464,50 @@ def dataset_cfa(ds: Any) -> str | None:
     return None
 
 
-def stack_dataset(ds: Any, progress: Progress = no_progress, desc: str = "reading") -> StackStats:
-    """Stream a dataset once into :class:`StackStats` (decoding in a background thread)."""
-    acc = StackAccumulator()
-    for frame, image in zip(ds.frames, prefetch(progress(ds.images(), total=len(ds), desc=desc))):
-        acc.add(image, name=str(frame.path))
-    if acc.n == 0:
-        raise InputError(f"{ds.root}: no images")
-    return acc.result()
+def stack_dataset(ds: Any, progress: Progress = no_progress, desc: str = "reading",
+                  executor: Executor | None = None) -> StackStats:
+    """Stream a dataset once into :class:`StackStats` (chunks of frames on ``executor``; in-process by default)."""
+    (stack,) = stack_datasets([ds], progress, desc, executor)
+    return stack
+
+
+def stack_datasets(datasets: Sequence[Any], progress: Progress = no_progress, desc: str = "reading",
+                   executor: Executor | None = None) -> Iterator[StackStats]:
+    """Each dataset's :class:`StackStats`, yielded in order as soon as it is complete.
+
+    Every (dataset, chunk of frames) pair is one work item of ``executor``
+    (:func:`forensics.io.stack.stack_sets`), so several sets keep every worker busy.
+    """
+    for ds in datasets:
+        if len(ds) == 0:
+            raise InputError(f"{ds.root}: no images")
+    return stack_sets([[frame.path for frame in ds.frames] for ds in datasets], executor, progress, desc)
 
 
 def detect_dataset(ds: Any, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SIGMA, tau: float | None = None,
                    mask: MaskSpec | None = None, stuck_tolerance: float = 0.0, progress: Progress = no_progress,
-                   threads: int | None = None) -> DetectionResult:
+                   threads: int | None = None, executor: Executor | None = None) -> DetectionResult:
     """:func:`detect` on a dataset folder's images (one streaming pass; raw mosaics per CFA channel)."""
+    (result,) = detect_datasets([ds], q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance,
+                                progress=progress, threads=threads, executor=executor)
+    return result
 
-    if len(ds) == 0:
-        raise InputError(f"{ds.root}: no images")
-    ds.shape()  # one size, or a clear error naming the odd file
-    stack = stack_dataset(ds, progress)
-    cfa = dataset_cfa(ds)
-    return detect(stack, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance, cfa=cfa,
-                  full_scale=full_scale(stack.minimum.dtype), threads=threads)
+
+def detect_datasets(datasets: Sequence[Any], q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SIGMA,
+                    tau: float | None = None, mask: MaskSpec | None = None, stuck_tolerance: float = 0.0,
+                    progress: Progress = no_progress, threads: int | None = None,
+                    executor: Executor | None = None) -> list[DetectionResult]:
+    """:func:`detect_dataset` on several datasets with one setting, their frames read on ``executor``.
+
+    The stack statistics of all sets are one list of work items (one progress bar); each set is detected
+    here as soon as its statistics are complete, while the workers read the following sets.
+    """
+    for ds in datasets:
+        if len(ds) == 0:
+            raise InputError(f"{ds.root}: no images")
+        ds.shape()  # one size, or a clear error naming the odd file
+    results = []
+    for ds, stack in zip(datasets, stack_datasets(datasets, progress, executor=executor)):
+        results.append(detect(stack, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance,
+                              cfa=dataset_cfa(ds), full_scale=full_scale(stack.minimum.dtype), threads=threads))
+    return results

@@ -32,18 +32,21 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
 
-from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect_dataset
+from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect_datasets
 from forensics.defects.onsets import Z_RECHECK, first_epochs, presence_matrix
 from forensics.defects.onsets import z_at as _z_at  # noqa: F401  (dating reads it from here)
 from forensics._shared.errors import InputError
 from forensics.stats.counts import LEVEL, TrendTest, garwood, trend_test
 from forensics.sensor.catalogue import KIND_CODES, KIND_NAMES, PARTIAL, STUCK
 from forensics._shared.progress import Progress, no_progress
+
+if TYPE_CHECKING:
+    from forensics._shared.parallel import Executor
 
 MODEL_FORMAT = "forensics-growth-model/1"
 
@@ -407,8 +410,12 @@ def dataset_device(ds: Any) -> str | None:
 
 def epochs_from_datasets(datasets: Sequence[Any], q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SIGMA,
                          tau: float | None = None, mask: MaskSpec | None = None, stuck_tolerance: float = 0.0,
-                         progress: Progress = no_progress) -> list[Epoch]:
-    """Detect defects in each dataset (one epoch each), dated by the median of their 'captured' field."""
+                         progress: Progress = no_progress, executor: Executor | None = None) -> list[Epoch]:
+    """Detect defects in each dataset (one epoch each), dated by the median of their 'captured' field.
+
+    The frames of all epochs are read on ``executor`` as one list of (epoch, chunk) work items
+    (:func:`~forensics.defects.detection.detect_datasets`): the detections are identical on every backend.
+    """
     infos = []
     for ds in datasets:
         date = ds.epoch()  # InputError naming 'captured' when missing
@@ -422,12 +429,9 @@ def epochs_from_datasets(datasets: Sequence[Any], q: int = DEFAULT_Q, sigma: flo
         if device and first[3] and device != first[3]:
             raise InputError(f"{ds.root} is from device '{device}' but {first[0].root} is from '{first[3]}'; "
                              "growth needs sets from one device")
-    epochs = []
-    for ds, date, _, device in infos:
-        det = detect_dataset(ds, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance,
-                             progress=progress)
-        epochs.append(Epoch(date, det, str(ds.root), device))
-    return epochs
+    detections = detect_datasets([ds for ds, *_ in infos], q=q, sigma=sigma, tau=tau, mask=mask,
+                                 stuck_tolerance=stuck_tolerance, progress=progress, executor=executor)
+    return [Epoch(date, det, str(ds.root), device) for (ds, date, _, device), det in zip(infos, detections)]
 
 
 # =========================================================================== the saved model

@@ -18,6 +18,6 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "IMAGE_EXTENSIONS", "RAW_EXTENSIONS", "ImageInfo", "RawMosaic", "bits_dtype", "is_raw", "read_image",
             "read_info", "read_raw", "write_image",
         ],
-        "stack": ["StackAccumulator", "StackStats", "stack_stats"],
+        "stack": ["StackAccumulator", "StackStats", "stack_paths", "stack_sets", "stack_stats"],
     },
 )

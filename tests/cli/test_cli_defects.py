@@ -133,3 +133,23 @@ def test_detect_on_real_flat_fields(capsys, tmp_path):
     # flat fields hardly change between frames: with a loose tolerance the stuck test is refused, with a warning
     code, out, err = run(capsys, "defects", "detect", str(folder), "--mask", "all", "--stuck-tolerance", "3")
     assert code == 0 and "stuck test cannot" in err and "0 stuck" in out
+
+
+def test_workers_do_not_change_the_results(aged, capsys, monkeypatch):
+    """detect, growth and date with two worker processes print the JSON of one process, bit for bit."""
+    import forensics.io.stack
+
+    monkeypatch.setattr(forensics.io.stack, "STACK_CHUNK", 5)  # 12 frames a set: three chunks merged per set
+    sets = [str(aged / "aged" / f"year_{a:03d}") for a in (0, 4, 8)]
+    commands = (["defects", "detect", sets[2]], ["defects", "growth", *sets],
+                ["date", str(aged / "aged" / "year_012"), "--reference", *sets])
+    for argv in commands:
+        outputs = {}
+        for workers in ("1", "2"):
+            code, out, err = run(capsys, *argv, "--json", "--workers", workers)
+            assert code == 0, err
+            outputs[workers] = json.loads(out)
+        assert outputs["1"].pop("execution")["backend"] == "in-process"
+        assert outputs["2"].pop("execution") == {"backend": "processes", "workers": 2, "scheduler": None,
+                                                 "dashboard": None}
+        assert outputs["1"] == outputs["2"], argv
