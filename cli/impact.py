@@ -4,10 +4,14 @@ from __future__ import annotations
 import argparse
 
 from forensics.cli.common import (
+    add_execution_options,
+    add_input_options,
     add_output_options,
     command_parser,
     emit,
+    executor_for,
     info,
+    open_input,
     progress_for,
 )
 
@@ -39,6 +43,8 @@ def register(sub) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the sensors' histories and the bootstrap (default 0)")
     parser.add_argument("--checkpoint", metavar="DIR",
                         help="keep finished (sensor, age) results in DIR; a rerun with the same settings resumes")
+    add_input_options(parser)
+    add_execution_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -47,7 +53,6 @@ def run(args: argparse.Namespace) -> int:
     from forensics._shared.errors import UsageError
     from forensics.impact.experiment import PROTOCOLS, parse_sensors, run_impact
     from forensics.impact.matchers import load_matchers
-    from forensics.io.dataset import open_dataset
     from forensics.sensor.simulate import parse_years, source_bit_depth
 
     if args.boot < 100:
@@ -58,21 +63,24 @@ def run(args: argparse.Namespace) -> int:
         from forensics._shared.atomic import refuse_existing
 
         refuse_existing(args.report, False)
-    source = open_dataset(args.src)
+    source = open_input(args, args.src)
     shape = source.shape()[:2]
     bits = source_bit_depth(source.frames[0].info().dtype)
     sensors = parse_sensors(args.sensors, shape, bits)
     ages = parse_years(args.years)
     matchers = load_matchers(args.matcher or ["masek", "ko"])
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
-    result = run_impact(source, sensors, ages, matchers, rng=args.seed, protocols=protocols, n_boot=args.boot,
-                        impostors=args.impostors, checkpoint=args.checkpoint, progress=progress_for(args))
+    with executor_for(args) as ex:
+        result = run_impact(source, sensors, ages, matchers, rng=args.seed, protocols=protocols, n_boot=args.boot,
+                            impostors=args.impostors, checkpoint=args.checkpoint, progress=progress_for(args),
+                            executor=ex)
+        execution = ex.info().to_dict()
     if args.report:
         from forensics.report.impact import impact_report
 
         page = impact_report(result).write(args.report, force=args.force)
         info(args, f"report: {page}")
-    emit(args, lambda: summary(result), result.to_dict)
+    emit(args, lambda: summary(result), lambda: {**result.to_dict(), "execution": execution})
     return 0
 
 

@@ -111,8 +111,8 @@ class Checkpoint:
             except (OSError, ValueError):
                 old = None
             if old != self.config:
-                raise UsageError(f"{self.folder}: holds a run made with other settings; remove it (or pass --force) "
-                                 "to start again, or rerun with the settings it was made with")
+                raise UsageError(f"{self.folder}: holds a run made with other settings; rerun with those settings to "
+                                 "resume, or remove the folder to start again")
         else:
             _atomic_write_bytes(stamp, json.dumps(self.config, indent=2, sort_keys=True).encode())
 

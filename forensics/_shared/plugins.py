@@ -1,9 +1,18 @@
-"""Loading a user's class from ``module.path:Class`` or ``path/to/file.py:Class`` (effects, matchers)."""
+"""Loading a user's class from ``module.path:Class`` or ``path/to/file.py:Class`` (effects, matchers).
+
+Instances of such classes travel to worker processes by pickle (:mod:`forensics._shared.parallel`).  A class
+from an importable module pickles as usual; one loaded from a file cannot be imported by name in another
+process, so its instances are pickled as the file's absolute path, the class name and their state, and the
+worker loads the file again (workers share the file system, as they share the images).
+"""
 from __future__ import annotations
 
+import copyreg
+import functools
 import importlib
 import importlib.util
 from pathlib import Path
+from typing import Any
 
 from forensics._shared.errors import UsageError
 
@@ -48,4 +57,19 @@ def load_class(spec: str, what: str) -> type:
         raise UsageError(f"{what} '{spec}': {where} has no {name}")
     if not isinstance(cls, type):
         raise UsageError(f"{what} '{spec}': {name} is not a class")
+    if where.endswith(".py"):
+        copyreg.pickle(cls, functools.partial(_reduce_by_spec, f"{Path(where).absolute()}:{name}", what))
     return cls
+
+
+def _reduce_by_spec(spec: str, what: str, obj: Any) -> Any:
+    reduced = object.__reduce_ex__(obj, 2)  # (copyreg.__newobj__, (cls, *args), state, …) for plain classes
+    if reduced[0] is copyreg.__newobj__ and reduced[1][0] is type(obj):
+        return (_new_by_spec, (spec, what, *reduced[1][1:]), *reduced[2:])
+    return reduced  # the class pickles itself its own way
+
+
+def _new_by_spec(spec: str, what: str, *args: Any) -> Any:
+    """A bare instance of the class named by ``spec``, loaded again in this process (pickle sets its state)."""
+    cls = load_class(spec, what)  # registers the class here too, so the instance can travel on
+    return cls.__new__(cls, *args)

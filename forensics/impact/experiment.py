@@ -18,16 +18,25 @@ slope of the EER on age) and the change from the first to the last age get paire
 called significant only when its interval excludes zero.  Across sensors (the paper's figure 6) the mean EER
 at each age gets a paired interval too, with the spread (standard deviation, range) beside it.
 
-Resuming.  With a checkpoint folder, every finished (sensor, age) writes its results (and, at age 0, the
-enrolment templates) atomically; a rerun with the same settings skips them and gives the identical result.
+Execution.  Every (sensor, age) is one task of the execution layer (:mod:`forensics._shared.parallel`): a
+worker realises the sensor's device from its keyed stream, reads the source images from their paths, ages
+and encodes them, scores the pairs and runs the class bootstrap, and hands back the EERs.  Tasks at age 0 come
+first when the ``enrol-0`` protocol is asked for, because their templates are every later task's enrolment
+gallery (shipped to the workers once).  Nothing a task computes depends on which process runs it, so the
+result is identical in-process, in local processes and on a Dask cluster.
+
+Resuming.  With a checkpoint folder (:class:`~forensics._shared.parallel.Checkpoint`), every finished
+(sensor, age) writes its results (and, at age 0, the enrolment templates) atomically; a rerun with the same
+settings skips them and gives the identical result.
 """
 from __future__ import annotations
 
-import json
+import dataclasses
 import pickle
 import time
+import warnings
 import zlib
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,10 +44,10 @@ from typing import Any
 import numpy as np
 
 from forensics import __version__
-from forensics._shared.atomic import atomic_file, write_json
 from forensics._shared.errors import InputError, UsageError
+from forensics._shared.parallel import Checkpoint, Executor, in_process, resolve
 from forensics._shared.progress import Progress, no_progress
-from forensics._shared.rng import RngLike, keyed_generator, seed_record
+from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
 from forensics.impact.matchers import Matcher, compare_all
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
@@ -279,36 +288,140 @@ def _histogram(pairs: PairedScores, higher_is_similar: bool) -> dict[str, Any]:
             "impostor": np.histogram(imp, edges)[0].tolist()}
 
 
-class _Checkpoint:
-    """Finished (sensor, age) units of one run, each in its own atomically written file."""
+def _stream_root(rng: RngLike) -> int | np.random.SeedSequence:
+    """What workers derive the run's keyed sub-streams from: the integer seed, or the generator's seed sequence.
 
-    def __init__(self, folder: Path | None, config: dict[str, Any]) -> None:
-        self.folder = folder
-        if folder is None:
-            return
-        folder.mkdir(parents=True, exist_ok=True)
-        stored = folder / "config.json"
-        if stored.exists():
-            if json.loads(stored.read_text()) != json.loads(json.dumps(config, default=str)):
-                raise InputError(f"{folder}: this checkpoint was made with other settings; remove it or choose "
-                                 "another folder")
-        else:
-            write_json(stored, config)
+    ``keyed_generator`` of either gives exactly the sub-streams of ``rng`` itself, and neither carries the
+    generator's state, so a task's streams depend on the seed and its key only, wherever it runs.
+    """
+    if isinstance(rng, (int, np.integer, np.random.SeedSequence)) and not isinstance(rng, (bool, np.bool_)):
+        return rng
+    return as_generator(rng).bit_generator.seed_seq
 
-    def _path(self, sensor: int, age: int) -> Path:
-        assert self.folder is not None
-        return self.folder / f"sensor{sensor:02d}_age{age:03d}.pkl"
 
-    def load(self, sensor: int, age: int) -> dict[str, Any] | None:
-        if self.folder is None or not self._path(sensor, age).exists():
-            return None
-        with open(self._path(sensor, age), "rb") as fh:
-            return pickle.load(fh)
+@dataclass(frozen=True)
+class _ImpactJob:
+    """What every (sensor, age) task needs: shipped once per worker (the executor's ``shared``), never per task."""
 
-    def save(self, sensor: int, age: int, payload: dict[str, Any]) -> None:
-        if self.folder is not None:
-            with atomic_file(self._path(sensor, age), force=True) as fh:
-                pickle.dump(payload, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    sensors: list[SensorSpec]
+    ages: list[float]
+    matchers: list[Matcher]
+    protocols: list[str]
+    paths: list[str]
+    dtype: str
+    shape: tuple[int, ...]
+    labels: np.ndarray
+    n_classes: int
+    impostors: int | None
+    root: int | np.random.SeedSequence
+    weights: np.ndarray
+    level: float
+    keep_enrol: bool
+    #: Age-0 templates of every sensor (sensor index → matcher name → templates), the enrol-0 gallery.
+    enrol: dict[int, dict[str, list[Any]]] | None = None
+
+
+def _impact_task(job: _ImpactJob, item: tuple[int, int]) -> dict[str, Any]:
+    """One (sensor, age): age and encode every image, score every matcher and protocol, bootstrap the EERs.
+
+    Returns ``{"units": [UnitResult, …], "enrol": templates or None}``; the templates are kept only at age 0
+    and only when a later task needs them as its enrolment gallery.
+    """
+    s_index, a_index = item
+    spec, age = job.sensors[s_index], job.ages[a_index]
+    templates = _aged_templates(job, s_index, a_index)
+    # Recomputed here rather than shipped: for the paper's set the pair indices are 40 MB, their draw ~50 ms.
+    i, j, sampled = _pairs(job.labels, job.impostors, job.root)
+    enrol = templates if age == 0.0 else (job.enrol or {}).get(s_index)
+    units = []
+    for matcher in job.matchers:
+        for protocol in job.protocols:
+            gallery = templates[matcher.name] if protocol == "same-age" else enrol[matcher.name]
+            scores = _scores(matcher, gallery, templates[matcher.name], i, j, sampled)
+            if not np.all(np.isfinite(scores)):
+                raise InputError(f"matcher {matcher.name} returned a score that is not a finite number")
+            pairs = PairedScores.of(scores, job.labels[i], job.labels[j], job.n_classes,
+                                    higher_is_similar=matcher.higher_is_similar)
+            # The bootstrap's matrix products are BLAS calls; OpenBLAS gives the same bits whatever its thread
+            # count (it never splits a dot product), so a worker's EERs equal the in-process ones.
+            units.append(UnitResult(spec.name, age, matcher.name, protocol,
+                                    class_bootstrap_eer(pairs, job.weights, job.level),
+                                    _histogram(pairs, matcher.higher_is_similar)))
+    return {"units": units, "enrol": templates if age == 0.0 and job.keep_enrol else None}
+
+
+def _aged_templates(job: _ImpactJob, s_index: int, a_index: int) -> dict[str, list[Any]]:
+    """Every source image aged by sensor ``s_index`` to age ``a_index`` (once) and encoded by every matcher.
+
+    The device comes from the sensor's keyed stream and image ``k``'s frame noise from its sub-stream
+    ``(k, a_index)`` (:func:`~forensics.sensor.simulate.aged_exposures`): the images ``forensics simulate age``
+    writes with that stream, whichever process ages them.
+    """
+    from forensics.io.images import read_image
+
+    spec, age = job.sensors[s_index], job.ages[a_index]
+    sensor_rng = keyed_generator(job.root, _DEVICE_STREAM, spec.stream_key())
+    device = spec.model.realize(sensor_rng, [spec.model.t0 + a for a in job.ages])
+    ctx = device.context(spec.model.t0 + age)
+    templates: dict[str, list[Any]] = {m.name: [] for m in job.matchers}
+    for index, path in enumerate(job.paths):
+        image = read_image(path)
+        if image.dtype.str != job.dtype or image.shape != job.shape:
+            raise InputError(f"{path}: {image.dtype} {image.shape} differs from the first image "
+                             f"({np.dtype(job.dtype)} {job.shape}); a source set must be uniform")
+        aged = aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0]
+        for matcher in job.matchers:
+            templates[matcher.name].append(matcher.encode(aged))
+    return templates
+
+
+class _OneBar:
+    """One progress bar over the tasks of several maps: a ``Progress`` whose every tick advances the same bar."""
+
+    def __init__(self, progress: Progress, total: int, desc: str) -> None:
+        self._ticks = iter(progress(range(total), total=total, desc=desc))
+
+    def __call__(self, iterable: Iterable[Any], total: int | None = None, desc: str | None = None) -> Iterator[Any]:
+        for value in iterable:
+            next(self._ticks, None)
+            yield value
+
+    def close(self) -> None:
+        for _ in self._ticks:
+            pass
+
+
+def _pickling_problem(objects: Sequence[Any], backend: str) -> str | None:
+    """Why one of ``objects`` (matchers, sensors) cannot be sent to a worker, or None."""
+    for obj in objects:
+        try:
+            pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception as exc:  # noqa: BLE001 — whatever a user's object raises when pickled
+            if backend == "dask":  # Dask falls back on cloudpickle, which ships more (classes by value)
+                try:
+                    import cloudpickle
+
+                    cloudpickle.dumps(obj)
+                    continue
+                except Exception:  # noqa: BLE001
+                    pass
+            kind = "sensor" if isinstance(obj, SensorSpec) else "matcher"
+            name = getattr(obj, "name", type(obj).__name__)
+            return f"{kind} {name!r} cannot be sent to worker processes ({type(exc).__name__}: {exc})"
+    return None
+
+
+def _usable_executor(ex: Executor, job: _ImpactJob) -> Executor:
+    """``ex``, or the in-process executor (with a warning) when a matcher or sensor cannot be pickled."""
+    if ex.backend == "in-process":
+        return ex
+    problem = _pickling_problem([*job.matchers, *job.sensors], ex.backend)
+    if problem is None:
+        return ex
+    warnings.warn(f"{problem}; the impact experiment runs in this process instead (a matcher class defined in a "
+                  "module or a file.py travels to workers; one holding open files, locks or lambdas does not)",
+                  RuntimeWarning, stacklevel=3)
+    return in_process()
 
 
 def run_impact(
@@ -323,6 +436,7 @@ def run_impact(
     impostors: int | None = None,
     checkpoint: str | Path | None = None,
     progress: Progress = no_progress,
+    executor: Executor | None = None,
 ) -> ImpactResult:
     """Age ``source`` with every sensor to every age, score it with every matcher, and measure the EER.
 
@@ -335,7 +449,9 @@ def run_impact(
     ages
         Ages in years after T0 (taken in ascending order); must include 0 for the ``enrol-0`` protocol.
     matchers
-        Objects with ``encode``/``compare`` (see :mod:`forensics.impact.matchers`).
+        Objects with ``encode``/``compare`` (see :mod:`forensics.impact.matchers`).  On worker processes they
+        must be picklable (the built-ins, ``cmd:`` programs and classes loaded as ``module:Class`` or
+        ``file.py:Class`` are); if one is not, the run stays in this process with a ``RuntimeWarning``.
     rng
         Integer seed or generator of everything random: sensor ``s``'s device and frame noise come from
         ``keyed_generator(rng, 1, crc32(name))`` exactly as :func:`~forensics.sensor.simulate.age_dataset`
@@ -349,10 +465,53 @@ def run_impact(
         Score only this many impostor pairs, drawn uniformly without replacement (the same pairs at every age
         and sensor); all genuine pairs are always scored.
     checkpoint
-        Folder for resumable partial results.
+        Folder for resumable partial results (one file per finished sensor and age).  A folder made with
+        other settings is refused (:class:`~forensics._shared.errors.UsageError`).
+    progress
+        Progress wrapper; one bar counts the finished (sensor, age) tasks.
+    executor
+        Where the (sensor, age) tasks run (default: in this process); the result is the same on every backend.
     """
     started = time.perf_counter()
-    ages = sorted(float(a) for a in ages)  # enrolment at age 0 comes first; trends read ages in order
+    ages = sorted(float(a) for a in ages)  # trends read ages in order
+    _check_design(ages, matchers, protocols)
+    names = [m.name for m in matchers]
+    labels, class_names = _classes(source)
+    if len(class_names) < 2:
+        raise InputError(f"{source.root}: the impact experiment needs at least two classes (subjects)")
+    i, j, sampled = _pairs(labels, impostors, rng)
+    n_genuine = int((labels[i] == labels[j]).sum())
+    if n_genuine == 0:
+        raise InputError(f"{source.root}: no class has two images, so there is no genuine comparison")
+    info = source.frames[0].info()
+    shape = tuple(source.shape())
+    bits = source_bit_depth(info.dtype)
+    for spec in sensors:
+        if tuple(spec.model.shape) != shape[:2] or spec.model.bit_depth != bits:
+            raise InputError(f"{source.root}: images are {shape[1]}×{shape[0]} at {bits} bits but sensor {spec.name} "
+                             f"is {spec.model.shape[1]}×{spec.model.shape[0]} at {spec.model.bit_depth} bits")
+    job = _ImpactJob(list(sensors), ages, list(matchers), list(protocols),
+                     [str(Path(f.path).absolute()) for f in source.frames], np.dtype(info.dtype).str, shape, labels,
+                     len(class_names), impostors, _stream_root(rng),
+                     class_weights(len(class_names), n_boot, keyed_generator(rng, _BOOT_STREAM)), float(level),
+                     keep_enrol="enrol-0" in protocols)
+    config = {"source": str(source.root), "files": [f.file for f in source.frames], "sensors": [s.name for s in sensors],
+              "models": [s.model.to_dict() for s in sensors], "ages": ages, "matchers": names,
+              "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
+              "seed": seed_record(rng), "forensics_version": __version__}
+    store = Checkpoint(checkpoint, config) if checkpoint is not None else None
+    found, resumed = _run_tasks(_usable_executor(resolve(executor), job), job, store, progress)
+    units = [u for s in range(len(sensors)) for a in range(len(ages)) for u in found[s, a]]
+    result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,
+                          sampled, [s.name for s in sensors], ages, names, list(protocols), int(n_boot),
+                          float(level), seed_record(rng), units, resumed_units=resumed)
+    result.trends = trends(result)
+    result.spreads = spreads(result)
+    result.elapsed_s = time.perf_counter() - started
+    return result
+
+
+def _check_design(ages: list[float], matchers: Sequence[Matcher], protocols: Sequence[str]) -> None:
     bad = [p for p in protocols if p not in PROTOCOLS]
     if bad:
         raise UsageError(f"unknown protocol {bad[0]!r}; choose from {', '.join(PROTOCOLS)}")
@@ -363,77 +522,43 @@ def run_impact(
     names = [m.name for m in matchers]
     if len(set(names)) != len(names):
         raise UsageError(f"a matcher is named twice ({', '.join(names)})")
-    labels, class_names = _classes(source)
-    if len(class_names) < 2:
-        raise InputError(f"{source.root}: the impact experiment needs at least two classes (subjects)")
-    i, j, sampled = _pairs(labels, impostors, rng)
-    n_genuine = int((labels[i] == labels[j]).sum())
-    if n_genuine == 0:
-        raise InputError(f"{source.root}: no class has two images, so there is no genuine comparison")
-    weights = class_weights(len(class_names), n_boot, keyed_generator(rng, _BOOT_STREAM))
-    first = source.frames[0]
-    shape = tuple(source.shape()[:2])
-    bits = source_bit_depth(first.info().dtype)
-    for spec in sensors:
-        if tuple(spec.model.shape) != shape or spec.model.bit_depth != bits:
-            raise InputError(f"{source.root}: images are {shape[1]}×{shape[0]} at {bits} bits but sensor {spec.name} "
-                             f"is {spec.model.shape[1]}×{spec.model.shape[0]} at {spec.model.bit_depth} bits")
-    config = {"source": str(source.root), "files": [f.file for f in source.frames], "sensors": [s.name for s in sensors],
-              "models": [s.model.to_dict() for s in sensors], "ages": ages, "matchers": names,
-              "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
-              "seed": seed_record(rng)}
-    store = _Checkpoint(Path(checkpoint) if checkpoint is not None else None, config)
-    units: list[UnitResult] = []
+
+
+def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
+               progress: Progress) -> tuple[dict[tuple[int, int], list[UnitResult]], int]:
+    """Run every (sensor, age) task on ``ex``: the units of each, and how many units came from ``store``.
+
+    With the enrol-0 protocol the age-0 tasks run first (their templates are the later tasks' gallery);
+    otherwise all tasks form one map.  Either way a task's result does not depend on the order.
+    """
+    everything = [(s, a) for s in range(len(job.sensors)) for a in range(len(job.ages))]
+    first = [(s, a) for s, a in everything if job.keep_enrol and job.ages[a] == 0.0]
+    stages = [first, [t for t in everything if t not in first]]
+
+    def key(task: tuple[int, int]) -> str:
+        return f"sensor{task[0]:02d}-age{task[1]:03d}"
+
+    bar = _OneBar(progress, len(everything), "impact: sensor × age")
+    found: dict[tuple[int, int], list[UnitResult]] = {}
     resumed = 0
-    for s_index, spec in enumerate(sensors):
-        sensor_rng = keyed_generator(rng, _DEVICE_STREAM, spec.stream_key())
-        device = spec.model.realize(sensor_rng, [spec.model.t0 + a for a in ages])
-        enrol: dict[str, list[Any]] | None = None
-        for a_index, age in enumerate(ages):
-            saved = store.load(s_index, a_index)
-            if saved is not None:
-                units.extend(saved["units"])
-                resumed += len(saved["units"])
-                if saved.get("enrol") is not None:
-                    enrol = saved["enrol"]
-                continue
-            templates = _encode_all(source, device, spec, a_index, age, sensor_rng, matchers, progress)
-            if age == 0.0:
-                enrol = templates
-            found = []
-            for matcher in matchers:
-                for protocol in protocols:
-                    gallery = templates[matcher.name] if protocol == "same-age" else enrol[matcher.name]
-                    scores = _scores(matcher, gallery, templates[matcher.name], i, j, sampled)
-                    if not np.all(np.isfinite(scores)):
-                        raise InputError(f"matcher {matcher.name} returned a score that is not a finite number")
-                    pairs = PairedScores.of(scores, labels[i], labels[j], len(class_names),
-                                            higher_is_similar=matcher.higher_is_similar)
-                    found.append(UnitResult(spec.name, age, matcher.name, protocol,
-                                            class_bootstrap_eer(pairs, weights, level),
-                                            _histogram(pairs, matcher.higher_is_similar)))
-            store.save(s_index, a_index, {"units": found, "enrol": templates if age == 0.0 else None})
-            units.extend(found)
-    result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,
-                          sampled, [s.name for s in sensors], ages, names, list(protocols), int(n_boot),
-                          float(level), seed_record(rng), units, resumed_units=resumed)
-    result.trends = trends(result)
-    result.spreads = spreads(result)
-    result.elapsed_s = time.perf_counter() - started
-    return result
-
-
-def _encode_all(source: Dataset, device: Any, spec: SensorSpec, a_index: int, age: float, sensor_rng: Any,
-                matchers: Sequence[Matcher], progress: Progress) -> dict[str, list[Any]]:
-    """Every image aged to ``age`` (computed once) and encoded by every matcher."""
-    templates: dict[str, list[Any]] = {m.name: [] for m in matchers}
-    ctx = device.context(spec.model.t0 + age)
-    frames = progress(source.frames, total=len(source), desc=f"sensor {spec.name}, year {age:g}")
-    for index, frame in enumerate(frames):
-        aged = aged_exposures(device, frame.load(), [ctx], sensor_rng, index, first_step=a_index)[0]
-        for matcher in matchers:
-            templates[matcher.name].append(matcher.encode(aged))
-    return templates
+    for tasks in stages:
+        if not tasks:
+            continue
+        keys = [key(t) for t in tasks]
+        done = {k for k in keys if store is not None and store.has(k)}
+        outputs = ex.map(_impact_task, tasks, shared=job, progress=bar, desc="impact: sensor × age",
+                         checkpoint=store, keys=keys)
+        enrol: dict[int, dict[str, list[Any]]] = {}
+        for task, k, out in zip(tasks, keys, outputs):
+            found[task] = out["units"]
+            if k in done:
+                resumed += len(out["units"])
+            if out["enrol"] is not None:
+                enrol[task[0]] = out["enrol"]
+        if enrol:
+            job = dataclasses.replace(job, enrol=enrol)
+    bar.close()
+    return found, resumed
 
 
 def _ols_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:

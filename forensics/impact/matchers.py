@@ -22,6 +22,10 @@ words with ``np.bitwise_count`` and gives exactly the values of the pairwise loo
 Matcher specs for :func:`load_matcher`: ``masek`` | ``ko`` | ``module.path:Class`` | ``path/to/file.py:Class``
 | ``cmd:COMMAND`` (an external distance) | ``cmd+sim:COMMAND`` (an external similarity).  See
 :class:`ExternalMatcher` for the command protocol.
+
+Matchers travel to worker processes by pickle (the experiment runs on :mod:`forensics._shared.parallel`);
+instances of a ``file.py:Class`` travel as the file's path, the class name and their state
+(:mod:`forensics._shared.plugins`).
 """
 from __future__ import annotations
 

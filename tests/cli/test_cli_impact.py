@@ -95,3 +95,38 @@ def test_simulate_irises_writes_a_labelled_dataset(cli, tmp_path):
     image = ds.frames[0].load()
     assert image.dtype == np.uint8 and image.shape == (240, 320)
     assert cli("simulate", "irises", tmp_path / "ir", "--classes", "4", "--samples", "2")[0] != 0  # never overwrites
+
+
+def test_workers_change_nothing_but_the_execution_record(cli, tmp_path):
+    matcher = tmp_path / "my_matcher.py"
+    matcher.write_text(USER_MATCHER)
+    src = _labelled_set(tmp_path / "src")
+    runs = {}
+    for workers in ("1", "2"):
+        code, out, err = cli("impact", src, "--sensors", "B,H*500", "--years", "0,96", "--matcher",
+                             f"{matcher}:BlockCorrelation", "--boot", "200", "--seed", "4", "--workers", workers,
+                             "--allow-outside", "--json")
+        assert code == 0, err
+        runs[workers] = json.loads(out)
+    assert runs["1"]["execution"]["backend"] == "in-process"
+    assert runs["2"]["execution"] == {"backend": "processes", "workers": 2, "scheduler": None, "dashboard": None}
+    for run in runs.values():
+        for key in ("execution", "elapsed_s"):
+            run.pop(key)
+    assert runs["1"] == runs["2"]
+    assert cli("impact", src, "--workers", "0", "--quiet")[0] == 2
+
+
+def test_checkpoint_resumes_and_refuses_other_settings(cli, tmp_path):
+    matcher = tmp_path / "my_matcher.py"
+    matcher.write_text(USER_MATCHER)
+    src = _labelled_set(tmp_path / "src")
+    base = ("impact", src, "--sensors", "A,H*500", "--years", "0,48", "--matcher", f"{matcher}:BlockCorrelation",
+            "--boot", "200", "--checkpoint", tmp_path / "ck", "--json")
+    first, again = (cli(*base, "--seed", "2") for _ in range(2))
+    assert first[0] == again[0] == 0, first[2] + again[2]
+    one, two = json.loads(first[1]), json.loads(again[1])
+    assert one["resumed_units"] == 0 and two["resumed_units"] == 2 * 2 * 2  # everything from the checkpoint
+    assert one["units"] == two["units"] and one["trends"] == two["trends"] and one["spreads"] == two["spreads"]
+    code, _, err = cli(*base, "--seed", "3")
+    assert code == 2 and "other settings" in err

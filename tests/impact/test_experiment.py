@@ -11,6 +11,7 @@ from forensics._shared.rng import keyed_generator
 from forensics.impact.experiment import parse_sensors, run_impact
 from forensics.io.dataset import open_dataset, write_manifest
 from forensics.io.images import write_image
+from forensics.sensor.effects import ReadNoise
 from forensics.sensor.presets import preset
 from forensics.sensor.simulate import age_dataset
 from forensics.stats.scores import eer
@@ -131,7 +132,8 @@ def test_an_interrupted_run_resumes_to_the_identical_result(tmp_path):
     resumed = run_impact(source, sensors, ages, [BlockMatcher()], rng=11, n_boot=40, checkpoint=ckpt)
     assert resumed.resumed_units == 3 * 2  # three (sensor, age) units × two protocols
     assert _comparable(resumed) == _comparable(whole)
-    with pytest.raises(InputError, match="other settings"):
+    # The execution layer's Checkpoint refuses a folder made with other settings (a usage error, exit 2).
+    with pytest.raises(UsageError, match="other settings"):
         run_impact(source, sensors, ages, [BlockMatcher()], rng=12, n_boot=40, checkpoint=ckpt)
 
 
@@ -153,3 +155,25 @@ def test_bad_input(tmp_path):
         parse_sensors("Z", SHAPE, 8)
     with pytest.raises(InputError, match="bits"):
         run_impact(good, parse_sensors("A", SHAPE, 16), [0.0], [BlockMatcher()], rng=0, n_boot=10)
+
+
+def test_a_generator_gives_the_result_of_its_integer_seed(tmp_path):
+    # Tasks derive every stream from the run's seed sequence (never a generator's state), so rng=5 and
+    # default_rng(5) age, sample and resample identically; only the seed record differs in form.
+    source = _write_set(tmp_path / "src", classes=5, samples=3, noise=60.0)
+    sensors = [parse_sensors("H*50", SHAPE, 8)[0]]
+    sensors.append(type(sensors[0])("noisy", preset("B", SHAPE, bit_depth=8).with_effects(ReadNoise(sigma=6.0))))
+
+    def everything(rng):
+        result = run_impact(source, sensors, [0.0, 40.0], [BlockMatcher()], rng=rng, n_boot=30, impostors=50)
+        out = _comparable(result)
+        return (out.pop("seed"), out, [u.histogram for u in result.units],
+                [u.eer.replicates.tolist() for u in result.units])
+
+    generator = np.random.default_rng(5)
+    generator.random(3)  # its state is never used
+    by_int, by_gen = everything(5), everything(generator)
+    assert by_int[0] == 5 and by_gen[0] != 5
+    assert by_int[1:] == by_gen[1:]
+    other = everything(6)
+    assert other[2] != by_int[2] and other[3] != by_int[3]  # the frame noise and the resamples follow the seed
