@@ -2,13 +2,27 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import shutil
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from textwrap import fill
 
-from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.common import (
+    add_execution_options,
+    add_input_options,
+    add_output_options,
+    command_parser,
+    emit,
+    executor_for,
+    info,
+    open_input,
+    progress_for,
+    warn,
+)
 
 
 def register(sub) -> None:
@@ -23,7 +37,9 @@ def register(sub) -> None:
         fill("Maximum-likelihood fingerprint K = Σ W·I / Σ I² from the wavelet noise residuals W of every image in SET "
         "(streamed: one image in memory at a time; saturated pixels excluded), then zero-mean and DFT Wiener "
         "filtering.  20–50 bright, flat, unsaturated images (sky, wall, flat field) give the best fingerprint.  "
-        "All images must have one size and orientation.", 100))
+        "All images must have one size and orientation.  The images are summed in chunks on local worker "
+        "processes (or a Dask cluster); the result does not depend on how many.  An interrupted build resumes "
+        "from the chunks kept in .FP.partial/ beside the output when run again.", 100))
     build.add_argument("set", metavar="SET", help="dataset folder (images, optional manifest.csv)")
     build.add_argument("-o", "--output", metavar="FP", required=True, help="fingerprint file to write (.npz)")
     build.add_argument("--region", default="full",
@@ -31,6 +47,8 @@ def register(sub) -> None:
                             "128×128 corner patches; 'corners:N' for N×N)")
     build.add_argument("--sigma", type=float, default=3.0,
                        help="noise level of the wavelet denoiser on an 8-bit scale (default 3, the reference's)")
+    add_input_options(build)
+    add_execution_options(build)
     add_output_options(build, report=False)
     build.set_defaults(handler=run_build)
 
@@ -50,6 +68,8 @@ def register(sub) -> None:
                        help="PCE only: search shifts up to ±R pixels (default 0: zero shift; 'all': every circular "
                             "shift, which inflates non-matching PCE)")
     match.add_argument("--sigma", type=float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
+    add_input_options(match)
+    add_execution_options(match)
     add_output_options(match)
     match.set_defaults(handler=run_match)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
@@ -69,16 +89,18 @@ def _shift_range(text: str) -> int | None:
 
 def run_build(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
-    from forensics.io.dataset import open_dataset
     from forensics.prnu.fingerprint import build_fingerprint, parse_region
 
     region = parse_region(args.region)
     out = Path(args.output)
     refuse_existing(out, args.force)  # before hours of work, not after
-    ds = open_dataset(args.set)
+    ds = open_input(args, args.set)
     info(args, f"building a fingerprint from {len(ds)} images of {ds.root} ({region.spec}) …")
-    fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), total=len(ds))
-    fp.save(out, force=args.force)
+    with executor_for(args) as ex, _resumable(out, _build_config(ds, region, args.sigma), args.force) as checkpoint:
+        fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), executor=ex,
+                               checkpoint=checkpoint)
+        fp.save(out, force=args.force)
+        execution = ex.info().to_dict()
     excluded = fp.parameters.get("excluded_pixel_fraction", 0.0)
     if fp.n_images < 10:
         warn(f"only {fp.n_images} images: a fingerprint from fewer than about 20 is noisy and matches weakly")
@@ -92,23 +114,67 @@ def run_build(args: argparse.Namespace) -> int:
             f"  next: forensics fingerprint match {out} IMAGES/",
         ])
 
-    emit(args, summary, lambda: {"output": str(out), **fp.to_dict(), "k_std": float(fp.K.std())})
+    emit(args, summary, lambda: {"output": str(out), **fp.to_dict(), "k_std": float(fp.K.std()),
+                                 "execution": execution})
     return 0
 
 
+def _build_config(ds: Any, region: Any, sigma: float) -> dict[str, Any]:
+    """What a build's chunks depend on: every input file (with its size and time) and the settings."""
+    from forensics import __version__
+    from forensics.prnu.fingerprint import CHUNK_IMAGES
+
+    files = []
+    for frame in ds.frames:
+        try:
+            stat = Path(frame.path).stat()
+            files.append([str(frame.path), stat.st_size, stat.st_mtime_ns])
+        except OSError:  # reported by the build itself, with the file's name
+            files.append([str(frame.path), None, None])
+    return {"command": "fingerprint build", "files": files, "region": region.spec, "sigma": sigma,
+            "chunk_images": CHUNK_IMAGES, "version": __version__}
+
+
+@contextlib.contextmanager
+def _resumable(out: Path, config: dict[str, Any], force: bool) -> Iterator[Any]:
+    """A checkpoint of the build's chunks in ``.OUT.partial/`` beside the output, removed once the output is written.
+
+    An interrupted build leaves it, and the same command resumes from its chunks; a folder made with other
+    inputs or settings is refused (replaced with ``--force``).  Errors in the input cannot be resumed and
+    remove it.
+    """
+    from forensics._shared.errors import InputError, UsageError
+    from forensics._shared.parallel import Checkpoint
+
+    work = out.with_name(f".{out.name}.partial")
+    if force and work.exists():
+        try:
+            Checkpoint(work, config)
+        except UsageError:  # made with other inputs or settings: start again
+            shutil.rmtree(work)
+    checkpoint = Checkpoint(work, config)  # refuses another run's folder before anything is removed
+    try:
+        yield checkpoint
+    except (InputError, UsageError):
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    shutil.rmtree(work, ignore_errors=True)
+
+
 def run_match(args: argparse.Namespace) -> int:
-    from forensics.io.dataset import open_dataset
     from forensics.prnu.fingerprint import Fingerprint
     from forensics.prnu.match import match_set
     from forensics.report.prnu import match_report
 
     fp = Fingerprint.load(args.fingerprint)
-    ds = open_dataset(args.set)
+    ds = open_input(args, args.set)
     if fp.region.startswith("corners") and args.shift_range != 0 and args.metric == "pce":
         warn("a shift search on a 'corners' fingerprint compares unrelated patches; zero shift is the right test")
     info(args, f"scoring {len(ds)} images of {ds.root} against {args.fingerprint} ({args.metric}) …")
-    result = match_set(fp, ds, args.metric, threshold=args.threshold, shift_range=args.shift_range, sigma=args.sigma,
-                       progress=progress_for(args), name=str(args.fingerprint))
+    with executor_for(args) as ex:
+        result = match_set(fp, ds, args.metric, threshold=args.threshold, shift_range=args.shift_range,
+                           sigma=args.sigma, progress=progress_for(args), name=str(args.fingerprint), executor=ex)
+        execution = ex.info().to_dict()
     payload = result.to_dict()
 
     def summary() -> str:
@@ -117,7 +183,7 @@ def run_match(args: argparse.Namespace) -> int:
     if args.report:
         match_report(result).write(args.report, force=args.force)
         info(args, f"report: {Path(args.report) / 'index.html'}")
-    emit(args, summary, payload)
+    emit(args, summary, {**payload, "execution": execution})
     return 0
 
 

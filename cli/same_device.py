@@ -6,7 +6,18 @@ from pathlib import Path
 
 from textwrap import fill
 
-from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for, warn
+from forensics.cli.common import (
+    add_execution_options,
+    add_input_options,
+    add_output_options,
+    command_parser,
+    emit,
+    executor_for,
+    info,
+    open_input,
+    progress_for,
+    warn,
+)
 
 
 def register(sub) -> None:
@@ -39,30 +50,33 @@ def register(sub) -> None:
                         help="images per ageing fingerprint (default 50)")
     parser.add_argument("--ageing-residual", choices=["median", "wavelet"], default="median",
                         help="residual of the ageing fingerprints (default median, as the paper)")
+    add_input_options(parser)
+    add_execution_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
-    from forensics.io.dataset import open_dataset
     from forensics.prnu.samedevice import same_device
     from forensics.report.prnu import same_device_report
 
     if args.report:
         refuse_existing(args.report, args.force)  # before the work, not after
-    ds_a, ds_b = open_dataset(args.set_a), open_dataset(args.set_b)
+    ds_a, ds_b = open_input(args, args.set_a), open_input(args, args.set_b)
     info(args, f"same-device test: {len(ds_a)} images of {ds_a.root} against {len(ds_b)} of {ds_b.root} …")
     names = (_name(args.set_a), _name(args.set_b))
     if names[0] == names[1]:
         names = (str(args.set_a), str(args.set_b))
-    result = same_device(
-        ds_a, ds_b, args.seed,
-        fingerprint_images=args.fingerprint_images, score_images=args.score_images, region=args.region,
-        n_boot=args.bootstrap, ageing=args.ageing_fingerprints > 0,
-        ageing_fingerprints=max(args.ageing_fingerprints, 0), ageing_images=args.ageing_images,
-        ageing_residual=args.ageing_residual, names=names, progress=progress_for(args),
-    )
+    with executor_for(args) as ex:
+        result = same_device(
+            ds_a, ds_b, args.seed,
+            fingerprint_images=args.fingerprint_images, score_images=args.score_images, region=args.region,
+            n_boot=args.bootstrap, ageing=args.ageing_fingerprints > 0,
+            ageing_fingerprints=max(args.ageing_fingerprints, 0), ageing_images=args.ageing_images,
+            ageing_residual=args.ageing_residual, names=names, progress=progress_for(args), executor=ex,
+        )
+        execution = ex.info().to_dict()
     for message in result.warnings:
         warn(message)
     if args.report:
@@ -72,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     payload["parameters"]["seed"] = args.seed
     payload["sets"]["a"]["folder"] = str(ds_a.root)
     payload["sets"]["b"]["folder"] = str(ds_b.root)
+    payload["execution"] = execution
     emit(args, lambda: summary(result), payload)
     return 0
 

@@ -14,14 +14,15 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "AgeingTable", "MedianFingerprintBuilder", "PairStatistic", "ageing_table",
             "build_ageing_fingerprints",
         ],
-        "fingerprint": ["Fingerprint", "FingerprintBuilder", "Region", "build_fingerprint", "parse_region"],
+        "fingerprint": ["Fingerprint", "FingerprintBuilder", "FingerprintJob", "ImageSet", "Region", "build_fingerprint",
+                        "build_fingerprints", "parse_region"],
         "match": [
             "PCE_THRESHOLD", "QUERY_SIGMA", "MatchScore", "PceResult", "Query", "SetMatch", "match_set", "ncc",
             "pce", "prepare_query", "score_matrix", "score_pair", "score_query",
         ],
         "residual": ["median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft", "zero_mean_cfa"],
         "samedevice": [
-            "EerVerdict", "ImageSet", "SameDeviceResult", "SetPlan", "SetSummary", "eer_verdict",
+            "EerVerdict", "SameDeviceResult", "SetPlan", "SetSummary", "eer_verdict",
             "expected_eer_ci_width", "plan_set", "same_device",
         ],
     },

@@ -29,9 +29,18 @@ import numpy as np
 
 from forensics._shared.arrays import grey_luma
 from forensics._shared.errors import InputError
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator
-from forensics.prnu.fingerprint import Fingerprint, FingerprintBuilder, Region, intensity, saturation_mask
+from forensics.prnu.fingerprint import (
+    Fingerprint,
+    FingerprintBuilder,
+    FingerprintJob,
+    Region,
+    build_fingerprints,
+    intensity,
+    saturation_mask,
+)
 from forensics.prnu.residual import median_residual, zero_mean_cfa
 
 __all__ = [
@@ -106,14 +115,14 @@ class MedianFingerprintBuilder(FingerprintBuilder):
 
 def build_ageing_fingerprints(images: Any, groups: Sequence[Sequence[int]], region: Region, residual: str = "median",
                               sigma: float = 3.0, median_size: int = 3, progress: Progress = no_progress,
-                              desc: str = "ageing fingerprints",
-                              options: dict[str, Any] | None = None) -> list[np.ndarray]:
-    """One fingerprint per group of images, built group after group (one accumulator in memory at a time).
+                              desc: str = "ageing fingerprints", options: dict[str, Any] | None = None, *,
+                              executor: Executor | None = None) -> list[np.ndarray]:
+    """One fingerprint per group of images, all built on the execution layer (items: group × chunk of images).
 
     Parameters
     ----------
-    images : forensics.prnu.samedevice.ImageSet
-        Anything with ``load(i)`` and ``sources``.
+    images : forensics.prnu.fingerprint.ImageSet
+        Anything with ``load(i)`` and ``sources`` (picklable for worker processes or a cluster).
     groups : sequence of sequences of int
         Disjoint image indices, one group per fingerprint (e.g. ``SetPlan.ageing_groups``).
     region : Region
@@ -122,24 +131,19 @@ def build_ageing_fingerprints(images: Any, groups: Sequence[Sequence[int]], regi
         :class:`~forensics.prnu.fingerprint.FingerprintBuilder` with noise level ``sigma``.
     median_size : int
     progress, desc
+        One bar counting the work items.
     options : dict
         As :class:`~forensics.prnu.fingerprint.FingerprintBuilder` (``workers`` is ignored by the median one).
+    executor : Executor, optional
+        Default: in this process.  Groups are finished in order and their sums dropped as soon as
+        each fingerprint is complete (:func:`~forensics.prnu.fingerprint.build_fingerprints`).
     """
     options = dict(options or {})
-    out = []
     median_options = {k: v for k, v in options.items() if k != "workers"}
-    total = sum(len(g) for g in groups)
-    it = iter(progress(((gi, i) for gi, g in enumerate(groups) for i in g), total=total, desc=desc))
-    for gi, group in enumerate(groups):
-        builder: Any = (MedianFingerprintBuilder(region, median_size, **median_options) if residual == "median"
-                        else FingerprintBuilder(region, sigma, **options))
-        for _ in group:
-            _, i = next(it)
-            builder.add(images.load(i), source=images.sources[i])
-        out.append(builder.result().K)
-    for _ in it:  # let a progress bar finish
-        pass
-    return out
+    template: FingerprintBuilder = (MedianFingerprintBuilder(region, median_size, **median_options)
+                                    if residual == "median" else FingerprintBuilder(region, sigma, **options))
+    jobs = [FingerprintJob(template, images, tuple(int(i) for i in group)) for group in groups]
+    return [fp.K for fp in build_fingerprints(jobs, executor=executor, progress=progress, desc=desc)]
 
 
 # ----------------------------------------------------------------------------- ageing table

@@ -40,13 +40,22 @@ Regions (:func:`parse_region`):
 In every region the pixels are cut out of the frame first and the residual is
 computed on the cut-out (cheaper than a full-frame residual; a fingerprint and the
 queries matched against it use the same geometry, so the edge effects agree).
+
+Parallel builds: the two sums are sums over images, so they are computed in chunks of
+:data:`CHUNK_IMAGES` images — a chunk is one work item of the execution layer
+(:mod:`forensics._shared.parallel`), which reads its images itself — and the chunks'
+sums are added in chunk order (:func:`build_fingerprints`).  :class:`FingerprintBuilder`
+adds images one by one in the same chunks, so a fingerprint has the same bits
+whether it was built image by image, in worker processes or on a Dask cluster.
 """
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import os
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,6 +66,7 @@ from scipy import ndimage
 from forensics import __version__
 from forensics._shared.atomic import atomic_file
 from forensics._shared.errors import InputError, UsageError
+from forensics._shared.parallel import Checkpoint, Executor, chunks, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.arrays import GREY_WEIGHTS, full_scale
 from forensics.prnu.residual import (
@@ -72,9 +82,15 @@ __all__ = [
     "parse_region",
     "saturation_mask",
     "intensity",
+    "ImageSet",
+    "CHUNK_IMAGES",
+    "FingerprintSums",
     "FingerprintBuilder",
+    "FingerprintJob",
     "Fingerprint",
     "build_fingerprint",
+    "build_fingerprints",
+    "chunk_sums",
     "postprocess",
     "region_residual_and_intensity",
     "FORMAT",
@@ -84,6 +100,9 @@ FORMAT = "forensics-fingerprint/1"
 #: Roll-off of the intensity weight near full scale (reference: T = 252, v = 6 on 8 bits).
 ROLLOFF_T = 252.0 / 255.0
 ROLLOFF_V = 6.0 / 255.0**2
+#: Images per chunk of the sums (see the module notes): fixed by the estimator, never by the number of
+#: workers, so that every way of building a fingerprint adds the same numbers in the same order.
+CHUNK_IMAGES = 8
 
 Slices = tuple[slice, slice]
 
@@ -367,6 +386,129 @@ def postprocess(k: np.ndarray, region: Region | str, frame_shape: Sequence[int],
     return out
 
 
+# ----------------------------------------------------------------------------- image sets
+
+
+class ImageSet:
+    """An ordered set of images that are loaded one at a time, on demand.
+
+    Parameters
+    ----------
+    loaders : sequence of callables
+        ``loaders[i]()`` returns image ``i`` as an array ((H, W) or (H, W, 3)).
+    sources : sequence of str
+        A name for each image (file path, or a label).
+    name : str
+        Name of the set (for messages and reports).
+
+    Notes
+    -----
+    Build one with :meth:`of` from a dataset folder, a :class:`forensics.io.dataset.Dataset`
+    or a sequence of arrays, paths, frames or zero-argument callables, or with
+    :meth:`from_function` for images rendered on demand (simulations).
+
+    Work items of the execution layer name images by their index in a set, and the set
+    is the items' shared data: on worker processes or a Dask cluster its loaders must be
+    picklable (paths, dataset frames, module-level functions; a set of arrays is copied
+    to every worker).
+    """
+
+    def __init__(self, loaders: Sequence[Callable[[], np.ndarray]], sources: Sequence[str], name: str) -> None:
+        if len(loaders) != len(sources):
+            raise UsageError("ImageSet: one source name per loader is needed")
+        self._loaders = list(loaders)
+        self.sources = [str(s) for s in sources]
+        self.name = str(name)
+
+    def __len__(self) -> int:
+        return len(self._loaders)
+
+    def load(self, index: int) -> np.ndarray:
+        """Image ``index`` (decoded or rendered now; not cached)."""
+        try:
+            image = self._loaders[index]()
+        except InputError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{self.sources[index]}: cannot read the image ({exc})") from exc
+        return np.asarray(image)
+
+    def subset(self, indices: Sequence[int], name: str | None = None) -> ImageSet:
+        """The images at ``indices`` (nothing is loaded), e.g. to split one set into disjoint halves."""
+        idx = [int(i) for i in indices]
+        return ImageSet([self._loaders[i] for i in idx], [self.sources[i] for i in idx], name or self.name)
+
+    @classmethod
+    def from_function(cls, n: int, render: Callable[[int], np.ndarray], name: str,
+                      sources: Sequence[str] | None = None) -> ImageSet:
+        """``n`` images where image ``i`` is ``render(i)`` (must be deterministic in ``i``)."""
+        if n < 0:
+            raise UsageError(f"ImageSet.from_function: n={n} must be non-negative")
+        names = list(sources) if sources is not None else [f"{name}[{i}]" for i in range(n)]
+        return cls([functools.partial(render, i) for i in range(n)], names, name)
+
+    @classmethod
+    def of(cls, source: Any, name: str | None = None) -> ImageSet:
+        """An :class:`ImageSet` from a folder, a Dataset, or a sequence of images.
+
+        Parameters
+        ----------
+        source : ImageSet, str, PathLike, Dataset or sequence
+            A dataset folder (opened with :func:`forensics.io.dataset.open_dataset`), a
+            Dataset, or a sequence whose items are arrays, image paths, objects with
+            ``load()`` (and ``path``) such as :class:`forensics.io.dataset.Frame`, or
+            zero-argument callables returning an array.
+        name : str, optional
+            Name of the set (default: the folder, or 'set').
+
+        Raises
+        ------
+        InputError
+            If the folder is not a dataset.
+        UsageError
+            If ``source`` is none of the above (e.g. a generator: images are drawn
+            at random and shared out by index, so the set must know how many there are).
+        """
+        from forensics.io.dataset import Dataset, open_dataset
+
+        if isinstance(source, ImageSet):
+            if name is not None:
+                return cls(source._loaders, source.sources, name)
+            return source
+        if isinstance(source, (str, os.PathLike)):
+            source = open_dataset(source)
+        if isinstance(source, Dataset):
+            frames = list(source.frames)
+            return cls([f.load for f in frames], [str(f.path) for f in frames], name or source.root.name or str(source.root))
+        if not (hasattr(source, "__len__") and hasattr(source, "__getitem__")) or isinstance(source, np.ndarray):
+            raise UsageError(
+                "an image set must be a dataset folder, a Dataset, or a sequence of images (arrays, paths, "
+                "frames or callables); generators and single arrays are not accepted"
+            )
+        label = name or "set"
+        loaders: list[Callable[[], np.ndarray]] = []
+        sources: list[str] = []
+        for i in range(len(source)):
+            item = source[i]
+            if isinstance(item, np.ndarray):
+                loaders.append(functools.partial(np.asarray, item))
+                sources.append(f"{label}[{i}]")
+            elif isinstance(item, (str, os.PathLike)):
+                from forensics.io.images import read_image
+
+                loaders.append(functools.partial(read_image, Path(item)))
+                sources.append(str(item))
+            elif hasattr(item, "load"):
+                loaders.append(item.load)
+                sources.append(str(getattr(item, "path", f"{label}[{i}]")))
+            elif callable(item):
+                loaders.append(item)
+                sources.append(f"{label}[{i}]")
+            else:
+                raise UsageError(f"{label}[{i}]: {type(item).__name__} is not an image, a path, a frame or a callable")
+        return cls(loaders, sources, label)
+
+
 # ----------------------------------------------------------------------------- the fingerprint
 
 
@@ -480,8 +622,55 @@ class Fingerprint:
         )
 
 
+@dataclass
+class FingerprintSums:
+    """``Σ W·I`` and ``Σ I²`` (float64, the region's shape) and the counts over some images.
+
+    One chunk of a build (what a work item returns, :func:`chunk_sums`) or the running total of a
+    :class:`FingerprintBuilder`.  ``files`` names the images in order; ``excluded`` counts the pixels
+    with zero weight (saturated); the frame geometry and pixel type let chunks be checked against each
+    other before they are added.
+    """
+
+    num: np.ndarray
+    den: np.ndarray
+    files: list[str]
+    excluded: int
+    frame_shape: tuple[int, int]
+    dtype: np.dtype
+
+    @classmethod
+    def zeros(cls, shape: tuple[int, int], frame_shape: tuple[int, int], dtype: np.dtype) -> FingerprintSums:
+        """Empty sums over a region of ``shape``."""
+        return cls(np.zeros(shape, np.float64), np.zeros(shape, np.float64), [], 0, frame_shape, dtype)
+
+    @property
+    def n_images(self) -> int:
+        """Number of images summed."""
+        return len(self.files)
+
+    def add(self, other: FingerprintSums) -> None:
+        """Add ``other``'s sums to these, in place (the one way partial sums are combined)."""
+        self.num += other.num
+        self.den += other.den
+        self.files.extend(other.files)
+        self.excluded += other.excluded
+
+    def clear(self) -> None:
+        """Back to zero, keeping the arrays (a builder reuses them chunk after chunk)."""
+        self.num.fill(0)
+        self.den.fill(0)
+        self.files = []
+        self.excluded = 0
+
+
 class FingerprintBuilder:
     """Accumulate ``Σ W·I`` and ``Σ I²`` image by image; memory does not grow with the count.
+
+    Images are summed in chunks of :data:`CHUNK_IMAGES` and the chunks added to a running
+    total, exactly as a parallel build adds its work items' sums (:func:`build_fingerprints`),
+    so both give the same bits.  Memory: four float64 arrays of the region's size (the
+    total and the current chunk).
 
     Parameters
     ----------
@@ -530,17 +719,56 @@ class FingerprintBuilder:
         self.saturation_dilate = int(saturation_dilate)
         self.rolloff = bool(rolloff)
         self.workers = workers
-        self.files: list[str] = []
+        self._reset()
+
+    def _reset(self) -> None:
         self.frame_shape: tuple[int, int] | None = None
         self._dtype: np.dtype | None = None
-        self._num: np.ndarray | None = None
-        self._den: np.ndarray | None = None
-        self._excluded = 0
+        self._total: FingerprintSums | None = None  # every finished chunk
+        self._chunk: FingerprintSums | None = None  # the chunk being filled by add()
+        self._one_chunk = False  # a work item's builder: one chunk, no running total
+
+    def empty(self) -> FingerprintBuilder:
+        """A builder with these settings and no images (each chunk of a parallel build starts from one).
+
+        Raises
+        ------
+        UsageError
+            If this builder already has images (its white level may come from them).
+        """
+        if self.n_images:
+            raise UsageError("a builder that already holds images cannot serve as the settings of a new build")
+        fresh = copy.copy(self)
+        fresh._reset()
+        return fresh
+
+    @property
+    def files(self) -> list[str]:
+        """Source of each image added so far, in order ('' where none was given)."""
+        return [name for sums in (self._total, self._chunk) if sums is not None for name in sums.files]
 
     @property
     def n_images(self) -> int:
         """Number of images added so far."""
-        return len(self.files)
+        return sum(s.n_images for s in (self._total, self._chunk) if s is not None)
+
+    def _accept(self, shape: tuple[int, int], dtype: np.dtype, name: str) -> None:
+        """Take the first frame's geometry and pixel type, or check a later one against them."""
+        if self.frame_shape is None:
+            self.frame_shape = shape
+            self._dtype = dtype
+            if self.white_level is None:
+                self.white_level = full_scale(dtype)
+        elif shape != self.frame_shape:
+            hint = " (rotated by 90°? rotate it to the sensor's orientation first)" if shape[::-1] == self.frame_shape else ""
+            raise InputError(f"{name}: frame is {shape[0]}×{shape[1]}, the others are "
+                             f"{self.frame_shape[0]}×{self.frame_shape[1]}{hint}")
+        elif dtype != self._dtype:
+            raise InputError(f"{name}: pixel type {dtype} differs from the first image's {self._dtype}")
+
+    def _new_sums(self) -> FingerprintSums:
+        assert self.frame_shape is not None and self._dtype is not None
+        return FingerprintSums.zeros(self.region.shape(self.frame_shape), self.frame_shape, self._dtype)
 
     def add(self, image: np.ndarray, source: str | os.PathLike | None = None) -> None:
         """Add one frame ((H, W) or (H, W, 3)); it is not modified.
@@ -551,32 +779,51 @@ class FingerprintBuilder:
             If its size or pixel type differs from the first frame's.
         """
         image = np.asarray(image)
-        shape = (int(image.shape[0]), int(image.shape[1])) if image.ndim in (2, 3) else None
         name = str(source) if source is not None else f"image #{self.n_images + 1}"
-        if shape is None:
+        if image.ndim not in (2, 3):
             raise InputError(f"{name}: array of shape {image.shape} is not an image")
-        if self.frame_shape is None:
-            self.frame_shape = shape
-            self._dtype = image.dtype
-            if self.white_level is None:
-                self.white_level = full_scale(image.dtype)
-            rshape = self.region.shape(shape)
-            self._num = np.zeros(rshape, np.float64)
-            self._den = np.zeros(rshape, np.float64)
-        elif shape != self.frame_shape:
-            hint = " (rotated by 90°? rotate it to the sensor's orientation first)" if shape[::-1] == self.frame_shape else ""
-            raise InputError(f"{name}: frame is {shape[0]}×{shape[1]}, the others are "
-                             f"{self.frame_shape[0]}×{self.frame_shape[1]}{hint}")
-        elif image.dtype != self._dtype:
-            raise InputError(f"{name}: pixel type {image.dtype} differs from the first image's {self._dtype}")
+        self._accept((int(image.shape[0]), int(image.shape[1])), image.dtype, name)
+        if self._chunk is None:
+            # both accumulators now, so that memory stays flat from the first image on
+            self._chunk = self._new_sums()
+            if not self._one_chunk:
+                self._total = self._new_sums()
+        elif self._chunk.n_images == CHUNK_IMAGES:
+            if self._one_chunk:
+                raise UsageError(f"a work item sums at most {CHUNK_IMAGES} images")
+            self._fold_chunk()
         w, i = self._residual_and_intensity(image)
-        assert self._num is not None and self._den is not None
-        self._excluded += int(np.count_nonzero(i == 0))
+        chunk = self._chunk
+        chunk.excluded += int(np.count_nonzero(i == 0))
         w *= i
-        self._num += w
+        chunk.num += w
         np.multiply(i, i, out=i)
-        self._den += i
-        self.files.append(str(source) if source is not None else "")
+        chunk.den += i
+        chunk.files.append(str(source) if source is not None else "")
+
+    def _fold_chunk(self) -> None:
+        """Add the filled chunk to the total and start a new one."""
+        assert self._total is not None and self._chunk is not None
+        self._total.add(self._chunk)
+        self._chunk.clear()
+
+    def merge(self, sums: FingerprintSums) -> None:
+        """Add the sums of the next chunk of images (computed elsewhere, :func:`chunk_sums`) to the total.
+
+        Chunks must be merged in image order for the bits not to depend on how they were computed.
+
+        Raises
+        ------
+        InputError
+            If the chunk's frames differ in size or pixel type from this builder's.
+        """
+        name = sums.files[0] if sums.files and sums.files[0] else "a chunk of images"
+        self._accept(tuple(sums.frame_shape), sums.dtype, name)  # type: ignore[arg-type]
+        if self._total is None:
+            self._total = self._new_sums()
+        if self._chunk is not None and self._chunk.n_images:
+            self._fold_chunk()
+        self._total.add(sums)
 
     def _residual_and_intensity(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residual W and intensity weight I of one frame over the region (subclasses change W)."""
@@ -600,21 +847,31 @@ class FingerprintBuilder:
 
     def raw_estimate(self) -> np.ndarray:
         """``Σ W·I / Σ I²`` before post-processing (0 where no image contributed), float32."""
-        if self._num is None or self._den is None:
+        if self._total is None:
             raise UsageError("no images added yet; add at least one image before asking for the fingerprint")
-        k = np.zeros(self._num.shape, np.float32)
-        np.divide(self._num, self._den, out=k, where=self._den > 0, casting="same_kind")
+        total, chunk = self._total, self._chunk
+        k = np.zeros(total.num.shape, np.float32)
+        if chunk is None or chunk.n_images == 0:
+            np.divide(total.num, total.den, out=k, where=total.den > 0, casting="same_kind")
+            return k
+        # the open chunk is added last, as a merge would; by blocks of rows, so no full-size temporaries
+        step = max(1, (1 << 18) // max(1, k.shape[1]))
+        for r in range(0, k.shape[0], step):
+            rows = slice(r, r + step)
+            num, den = total.num[rows] + chunk.num[rows], total.den[rows] + chunk.den[rows]
+            np.divide(num, den, out=k[rows], where=den > 0, casting="same_kind")
         return k
 
     def result(self) -> Fingerprint:
         """The post-processed fingerprint (the builder can keep accumulating afterwards)."""
         k = self._postprocess(self.raw_estimate())
         assert self.frame_shape is not None
+        excluded = sum(s.excluded for s in (self._total, self._chunk) if s is not None)
         return Fingerprint(
             K=k,
             region=self.region.spec,
             sigma=self.sigma,
-            files=list(self.files),
+            files=self.files,
             n_images=self.n_images,
             frame_shape=self.frame_shape,
             parameters={
@@ -625,10 +882,115 @@ class FingerprintBuilder:
                 "saturation_level": self.saturation_level,
                 "saturation_dilate": self.saturation_dilate,
                 "rolloff": self.rolloff,
-                "excluded_pixel_fraction": self._excluded / max(1, self.n_images * k.size),
+                "excluded_pixel_fraction": excluded / max(1, self.n_images * k.size),
                 "forensics_version": __version__,
             },
         )
+
+
+# ----------------------------------------------------------------------------- building on the execution layer
+
+
+@dataclass(frozen=True)
+class FingerprintJob:
+    """One fingerprint to build: the settings (a builder with no images), the image set, which of its images.
+
+    ``builder`` may be any :class:`FingerprintBuilder` (e.g. the median-residual one of
+    :mod:`forensics.prnu.ageing`); ``images`` anything with ``load(i)`` and ``sources``
+    (an :class:`ImageSet`).
+    """
+
+    builder: FingerprintBuilder
+    images: ImageSet
+    indices: tuple[int, ...]
+
+
+def chunk_sums(jobs: Sequence[FingerprintJob], item: tuple[int, int, int]) -> tuple[int, FingerprintSums]:
+    """Work item of a fingerprint build: the sums over images ``indices[start:stop]`` of job ``j``.
+
+    ``item`` is ``(j, start, stop)``; the images are read here, by index into the job's set.
+    Returns ``(j, sums)``.
+    """
+    j, start, stop = item
+    job = jobs[j]
+    builder = job.builder.empty()
+    builder._one_chunk = True  # the chunk's sums are all that is returned: no total to allocate
+    for i in job.indices[start:stop]:
+        builder.add(job.images.load(i), source=job.images.sources[i])
+    assert builder._chunk is not None
+    return j, builder._chunk
+
+
+def build_fingerprints(
+    jobs: Sequence[FingerprintJob],
+    *,
+    executor: Executor | None = None,
+    progress: Progress = no_progress,
+    desc: str = "fingerprints",
+    checkpoint: Checkpoint | None = None,
+) -> list[Fingerprint]:
+    """Build several fingerprints at once on the execution layer; one work item per (job, chunk of images).
+
+    Every job's images are cut into chunks of :data:`CHUNK_IMAGES` (so all workers are busy even
+    with one fingerprint, and with many), each chunk's sums computed where its item runs, and the
+    sums added job by job in chunk order: the fingerprints are bit-identical on every backend and
+    to a :class:`FingerprintBuilder` fed the same images one by one.  A job's sums are dropped as
+    soon as its fingerprint is complete, so the memory held is about one job's sums plus the
+    finished fingerprints.
+
+    Parameters
+    ----------
+    jobs : sequence of FingerprintJob
+    executor : Executor, optional
+        Default: in this process.
+    progress, desc
+        One progress bar counting the chunks.
+    checkpoint : Checkpoint, optional
+        Finished chunks are saved there (and loaded instead of recomputed when a run resumes).
+
+    Returns
+    -------
+    list of Fingerprint, in job order
+
+    Raises
+    ------
+    UsageError
+        A job without images, or whose builder already holds images.
+    InputError
+        Frames of one job differ in size or pixel type, or cannot be read.
+    """
+    jobs = tuple(jobs)
+    if any(len(job.indices) == 0 for job in jobs):
+        raise UsageError("no images to build a fingerprint from; give at least one (20-50 flat images are usual)")
+    builders: list[FingerprintBuilder | None] = [job.builder.empty() for job in jobs]  # refuses used builders
+    items = [(j, c.start, c.stop) for j, job in enumerate(jobs) for c in chunks(len(job.indices), CHUNK_IMAGES)]
+    remaining = [len(chunks(len(job.indices), CHUNK_IMAGES)) for job in jobs]
+    done: list[Fingerprint | None] = [None] * len(jobs)
+
+    def combine(acc: list[Fingerprint | None], part: tuple[int, FingerprintSums]) -> list[Fingerprint | None]:
+        j, sums = part
+        builder = builders[j]
+        assert builder is not None
+        builder.merge(sums)
+        remaining[j] -= 1
+        if remaining[j] == 0:
+            acc[j] = builder.result()
+            builders[j] = None  # free the sums
+        return acc
+
+    resolve(executor).reduce(chunk_sums, items, combine, initial=done, shared=jobs, progress=progress, desc=desc,
+                             checkpoint=checkpoint)
+    return [fp for fp in done if fp is not None]
+
+
+def _source_name(item: Any) -> str:
+    """What the provenance records for an image given as a frame, a path or an array."""
+    if hasattr(item, "load"):
+        path = getattr(item, "path", None)
+        return str(path) if path is not None else ""
+    if isinstance(item, (str, os.PathLike)):
+        return str(item)
+    return ""
 
 
 def build_fingerprint(
@@ -639,35 +1001,69 @@ def build_fingerprint(
     sources: Iterable[str | os.PathLike] | None = None,
     progress: Progress = no_progress,
     total: int | None = None,
+    executor: Executor | None = None,
+    checkpoint: Checkpoint | None = None,
     **options: Any,
 ) -> Fingerprint:
-    """Fingerprint from an iterable of frames, streamed (one frame in memory at a time).
+    """Fingerprint from frames, streamed (one frame in memory at a time per worker).
 
     Parameters
     ----------
-    images : iterable
-        Arrays, or objects with a ``load()`` method returning one and a ``path``
-        attribute (e.g. :class:`forensics.io.dataset.Frame`).
+    images : sequence or iterable
+        A sequence (list, :class:`ImageSet`, Dataset frames) of image paths, objects with a
+        ``load()`` method returning an array and a ``path`` attribute (e.g.
+        :class:`forensics.io.dataset.Frame`), or arrays: built in chunks on ``executor``
+        (:func:`build_fingerprints`).  Any other iterable (a generator of arrays) is
+        consumed here, one frame at a time.  Both give the same bits.
     region, sigma, **options
         As :class:`FingerprintBuilder`.
     sources : iterable of str, optional
-        Names recorded in the provenance (default: each item's ``path`` if any).
+        Names recorded in the provenance (default: each item's ``path`` or the path
+        itself; '' for arrays).
     progress : callable
-        ``progress(iterable, total=None, desc=None)`` (silent by default).
+        ``progress(iterable, total=None, desc=None)`` (silent by default); counts chunks
+        of :data:`CHUNK_IMAGES` images for a sequence.
     total : int, optional
-        Number of images, for the progress bar.
+        Number of images of an iterator, for the progress bar.
+    executor : Executor, optional
+        Where the chunks run (default: this process).  Workers read the images
+        themselves, so give paths or dataset frames rather than arrays.
+    checkpoint : Checkpoint, optional
+        Resume an interrupted build of a sequence (see :func:`build_fingerprints`).
 
     Raises
     ------
     UsageError
-        If ``images`` is empty.
+        If ``images`` is empty, or an iterator is given with an executor that is not in-process.
     """
+    from forensics.io.dataset import Dataset
+
     builder = FingerprintBuilder(region, sigma, **options)
-    names = iter(sources) if sources is not None else None
-    if total is None and hasattr(images, "__len__"):
-        total = len(images)  # type: ignore[arg-type]
+    names = None if sources is None else [str(s) for s in sources]
+    if isinstance(images, (ImageSet, Dataset)) or (
+            hasattr(images, "__len__") and hasattr(images, "__getitem__") and not isinstance(images, np.ndarray)):
+        image_set = ImageSet.of(images, "fingerprint")
+        if names is None and not isinstance(images, (ImageSet, Dataset)):
+            names = [_source_name(images[i]) for i in range(len(image_set))]  # type: ignore[index]
+        if names is not None:
+            if len(names) != len(image_set):
+                raise UsageError(f"{len(names)} source names for {len(image_set)} images; give one name per image")
+            image_set = ImageSet(image_set._loaders, names, image_set.name)
+        job = FingerprintJob(builder, image_set, tuple(range(len(image_set))))
+        return build_fingerprints([job], executor=executor, progress=progress, desc="fingerprint",
+                                  checkpoint=checkpoint)[0]
+    if executor is not None and executor.backend != "in-process":
+        raise UsageError("an iterator of images is read in this process; give a sequence of paths or frames to "
+                         "build a fingerprint on worker processes or a cluster")
+    return _build_streamed(builder, images, names, progress, total)
+
+
+def _build_streamed(builder: FingerprintBuilder, images: Iterable[Any], names: list[str] | None,
+                    progress: Progress, total: int | None) -> Fingerprint:
+    """Feed an iterator of frames to ``builder`` one at a time."""
+    name_iter = iter(names) if names is not None else None
     for item in progress(images, total=total, desc="fingerprint"):
-        source = next(names, None) if names is not None else None
+        source = next(name_iter, None) if name_iter is not None else None
         if hasattr(item, "load"):
             if source is None:
                 source = getattr(item, "path", None)

@@ -25,8 +25,9 @@ axis=(0, 1))``; shifts are reported in ``(−H/2, H/2] × (−W/2, W/2]``.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,7 @@ import scipy.fft
 from scipy import special
 
 from forensics._shared.errors import InputError, UsageError
+from forensics._shared.parallel import Executor, resolve
 from forensics.prnu.fingerprint import Fingerprint, Region, parse_region, region_residual_and_intensity
 from forensics._shared.progress import Progress, no_progress
 from forensics.prnu.residual import default_workers
@@ -531,6 +533,56 @@ class _PreparedImage:
         return q, s
 
 
+@dataclass(frozen=True)
+class _MatchSettings:
+    """What every query of a score matrix is scored with (the work items' shared data)."""
+
+    fingerprints: tuple[Fingerprint, ...]
+    metric: str
+    sigma: float
+    shift_range: Any
+    exclusion: int
+    rotations: Any
+    workers: int | None
+    query_options: dict[str, Any] = field(default_factory=dict)
+
+
+def _is_reference(item: Any) -> bool:
+    """A query that a worker can read itself: an image path or an object with ``load()`` (a dataset frame)."""
+    return isinstance(item, (str, os.PathLike)) or (hasattr(item, "load") and not isinstance(item, np.ndarray))
+
+
+def _score_column(settings: _MatchSettings, item: Any) -> list[MatchScore]:
+    """Work item of a score matrix: one query against every fingerprint (read here if it is a path or frame)."""
+    workers = default_workers() if settings.workers is None else settings.workers
+    metric, fingerprints = settings.metric, settings.fingerprints
+    if isinstance(item, Query) or (isinstance(item, tuple) and len(item) == 2):
+        return [score_pair(fp, item, metric, shift_range=settings.shift_range, exclusion=settings.exclusion,
+                           workers=workers) for fp in fingerprints]
+    source = None
+    if isinstance(item, (str, os.PathLike)):
+        from forensics.io.images import read_image
+
+        source, item = str(item), read_image(item)
+    elif hasattr(item, "load"):
+        source = str(getattr(item, "path", "")) or None
+        item = item.load()
+    prepared = _PreparedImage(np.asarray(item), source, settings.sigma, workers, settings.query_options)
+    column: list[MatchScore] = []
+    for fp in fingerprints:
+        rots = _rotations_for(settings.rotations, prepared.image.shape, fp)
+        best: MatchScore | None = None
+        for rot in rots:
+            q, spec = prepared.get(fp.region, rot, metric == "pce")
+            s = _score(fp, q.residual, q.intensity, metric, settings.shift_range, settings.exclusion, rot, workers,
+                       spec)
+            if best is None or s.value > best.value:
+                best = s
+        assert best is not None
+        column.append(_account_rotations(best, len(rots)))
+    return column
+
+
 def score_matrix(
     fingerprints: Sequence[Fingerprint],
     queries: Iterable[Any],
@@ -544,6 +596,7 @@ def score_matrix(
     total: int | None = None,
     details: bool = False,
     workers: int | None = None,
+    executor: Executor | None = None,
     **query_options: Any,
 ) -> np.ndarray | tuple[np.ndarray, list[list[MatchScore]]]:
     """Score every query against every fingerprint.
@@ -554,59 +607,57 @@ def score_matrix(
         May differ in region; each query is prepared once per (region, rotation).
     queries : iterable
         Each item is an image array, a :class:`Query`, a ``(residual, intensity)``
-        pair already cut to the fingerprints' region, or an object with ``load()``
-        (and ``path``), e.g. :class:`forensics.io.dataset.Frame`.  They are consumed one
-        at a time, so only one query's data is in memory.
+        pair already cut to the fingerprints' region, an image path, or an object with
+        ``load()`` (and ``path``), e.g. :class:`forensics.io.dataset.Frame`.  They are
+        consumed one at a time, so only one query's data is in memory (per worker).
     metric, sigma, shift_range, exclusion, rotations, **query_options
         As :func:`score_query`.
     progress : callable
-        Progress wrapper over the queries.
+        Progress wrapper, counting queries.
     total : int, optional
-        Number of queries, for the progress bar.
+        Number of queries of an iterator, for the progress bar.
     details : bool
         Also return the :class:`MatchScore` of every pair.
+    workers : int, optional
+        Threads per query (default: the process's share, :func:`forensics.prnu.residual.default_workers`).
+    executor : Executor, optional
+        Where the queries are scored, one work item per query, the fingerprints shipped once per
+        worker (default: this process).  Workers read the queries themselves, so on worker
+        processes or a cluster give paths or dataset frames (a sequence); the scores are the
+        same on every backend, in query order.
 
     Returns
     -------
     scores : ndarray, float64, (n_fingerprints, n_queries)
     details : list (per fingerprint) of lists of MatchScore, if ``details``
+
+    Raises
+    ------
+    UsageError
+        No fingerprints, an unknown metric, or arrays (or an iterator) given to an executor that
+        is not in-process.
     """
     _check_metric(metric)
     fingerprints = list(fingerprints)
     if not fingerprints:
         raise UsageError("no fingerprints to score against")
-    workers = default_workers() if workers is None else workers
-    if total is None and hasattr(queries, "__len__"):
-        total = len(queries)  # type: ignore[arg-type]
-    columns: list[list[MatchScore]] = []
-    for item in progress(queries, total=total, desc="matching"):
-        column: list[MatchScore] = []
-        if isinstance(item, Query) or (isinstance(item, tuple) and len(item) == 2):
-            for fp in fingerprints:
-                column.append(score_pair(fp, item, metric, shift_range=shift_range, exclusion=exclusion,
-                                         workers=workers))
-        else:
-            source = None
-            if hasattr(item, "load"):
-                source = str(getattr(item, "path", "")) or None
-                item = item.load()
-            prepared = _PreparedImage(np.asarray(item), source, sigma, workers, query_options)
-            for fp in fingerprints:
-                rots = _rotations_for(rotations, prepared.image.shape, fp)
-                best: MatchScore | None = None
-                for rot in rots:
-                    q, spec = prepared.get(fp.region, rot, metric == "pce")
-                    s = _score(fp, q.residual, q.intensity, metric, shift_range, exclusion, rot, workers, spec)
-                    if best is None or s.value > best.value:
-                        best = s
-                assert best is not None
-                column.append(_account_rotations(best, len(rots)))
-            del prepared
-        columns.append(column)
-    scores = np.array([[columns[j][i].value for j in range(len(columns))] for i in range(len(fingerprints))],
-                      dtype=np.float64).reshape(len(fingerprints), len(columns))
+    settings = _MatchSettings(tuple(fingerprints), metric, sigma, shift_range, exclusion, rotations, workers,
+                              dict(query_options))
+    ex = resolve(executor)
+    sized = hasattr(queries, "__len__") and not isinstance(queries, np.ndarray)
+    if ex.backend == "in-process" and not sized:  # an iterator: stream it, never hold it as a list
+        columns = [_score_column(settings, item) for item in progress(queries, total=total, desc="matching")]
+    else:
+        items = list(queries)
+        if ex.backend != "in-process" and not all(_is_reference(item) for item in items):
+            raise UsageError("scoring on worker processes or a cluster reads every query from its file: give image "
+                             "paths or dataset frames, not arrays (or use the in-process executor)")
+        columns = list(ex.map(_score_column, items, shared=settings, progress=progress, desc="matching"))
+    n_fp = len(fingerprints)
+    scores = np.array([[column[i].value for column in columns] for i in range(n_fp)],
+                      dtype=np.float64).reshape(n_fp, len(columns))
     if details:
-        return scores, [[columns[j][i] for j in range(len(columns))] for i in range(len(fingerprints))]
+        return scores, [[column[i] for column in columns] for i in range(n_fp)]
     return scores
 
 
@@ -639,7 +690,7 @@ class SetMatch:
 
 def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, threshold: float | None = None,
               shift_range: int | None = 0, sigma: float = QUERY_SIGMA, progress: Progress = no_progress,
-              name: str | None = None) -> SetMatch:
+              name: str | None = None, executor: Executor | None = None) -> SetMatch:
     """Score each frame of ``dataset`` against ``fingerprint`` and decide at ``threshold``.
 
     Parameters
@@ -656,6 +707,8 @@ def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, th
         Query residual noise level (8-bit scale).
     name : str, optional
         How the fingerprint is named in the result (e.g. its file).
+    executor : Executor, optional
+        Where the frames are scored, one work item each (:func:`score_matrix`); default in this process.
 
     Raises
     ------
@@ -668,7 +721,7 @@ def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, th
     if threshold is None and metric == "pce":
         threshold = PCE_THRESHOLD
     scores, details = score_matrix([fingerprint], dataset.frames, metric, sigma=sigma, shift_range=shift_range,
-                                   progress=progress, total=len(dataset), details=True)
+                                   progress=progress, total=len(dataset), details=True, executor=executor)
     rows = []
     for frame, value, d in zip(dataset.frames, scores[0], details[0]):
         decision = None if threshold is None else bool(value >= threshold)

@@ -28,27 +28,33 @@ The test, as the paper runs it (Höller & Uhl's sensor-identification methodolog
    inter-set NCC).  The figures and tables of a result are drawn by
    :func:`forensics.report.prnu.add_same_device`.
 
-Streaming: images are decoded one at a time.  An image is decoded once for the
+Streaming: images are decoded one at a time (per worker).  An image is decoded once for the
 EER part (it is either a fingerprint image or a scoring image) and once more if it
 also falls in an ageing group; each kind of residual is computed once per image.
 Memory: one frame's work, the two EER fingerprints, and the finished ageing
 fingerprints (``n_fingerprints × region pixels × 4`` bytes: 32 MB for 32
 fingerprints of the paper's corner patches).
+
+Execution (:mod:`forensics._shared.parallel`): each set's fingerprint is built from
+chunks of its images (:func:`forensics.prnu.fingerprint.build_fingerprints`), each
+scoring image is one work item, and a set's ageing fingerprints are built together as
+(group, chunk) items; workers read the images by index from the set (the items' shared
+data).  Every random draw is made here, from ``rng``, before or after the work, so the
+result is the same on every backend.
 """
 from __future__ import annotations
 
-import functools
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from forensics._shared.errors import InputError, UsageError
+from forensics._shared.parallel import Executor, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator
 from forensics.prnu.ageing import (
@@ -60,7 +66,15 @@ from forensics.prnu.ageing import (
     ageing_table,
     build_ageing_fingerprints,
 )
-from forensics.prnu.fingerprint import Fingerprint, FingerprintBuilder, Region, parse_region
+from forensics.prnu.fingerprint import (
+    Fingerprint,
+    FingerprintBuilder,
+    FingerprintJob,
+    ImageSet,
+    Region,
+    build_fingerprints,
+    parse_region,
+)
 from forensics.prnu.match import QUERY_SIGMA, prepare_query, score_pair
 from forensics.stats.scores import DetCurve, auc, bootstrap_eer, det_curve, eer, eer_convex_hull
 
@@ -90,124 +104,6 @@ WIDE_INTERVAL = 0.20
 
 def _pct(x: float) -> str:
     return f"{100 * x:.1f} %"
-
-
-# ----------------------------------------------------------------------------- image sets
-
-
-class ImageSet:
-    """An ordered set of images that are loaded one at a time, on demand.
-
-    Parameters
-    ----------
-    loaders : sequence of callables
-        ``loaders[i]()`` returns image ``i`` as an array ((H, W) or (H, W, 3)).
-    sources : sequence of str
-        A name for each image (file path, or a label).
-    name : str
-        Name of the set (for messages and reports).
-
-    Notes
-    -----
-    Build one with :meth:`of` from a dataset folder, a :class:`forensics.io.dataset.Dataset`
-    or a sequence of arrays, paths, frames or zero-argument callables, or with
-    :meth:`from_function` for images rendered on demand (simulations).
-    """
-
-    def __init__(self, loaders: Sequence[Callable[[], np.ndarray]], sources: Sequence[str], name: str) -> None:
-        if len(loaders) != len(sources):
-            raise UsageError("ImageSet: one source name per loader is needed")
-        self._loaders = list(loaders)
-        self.sources = [str(s) for s in sources]
-        self.name = str(name)
-
-    def __len__(self) -> int:
-        return len(self._loaders)
-
-    def load(self, index: int) -> np.ndarray:
-        """Image ``index`` (decoded or rendered now; not cached)."""
-        try:
-            image = self._loaders[index]()
-        except InputError:
-            raise
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{self.sources[index]}: cannot read the image ({exc})") from exc
-        return np.asarray(image)
-
-    def subset(self, indices: Sequence[int], name: str | None = None) -> ImageSet:
-        """The images at ``indices`` (nothing is loaded), e.g. to split one set into disjoint halves."""
-        idx = [int(i) for i in indices]
-        return ImageSet([self._loaders[i] for i in idx], [self.sources[i] for i in idx], name or self.name)
-
-    @classmethod
-    def from_function(cls, n: int, render: Callable[[int], np.ndarray], name: str,
-                      sources: Sequence[str] | None = None) -> ImageSet:
-        """``n`` images where image ``i`` is ``render(i)`` (must be deterministic in ``i``)."""
-        if n < 0:
-            raise UsageError(f"ImageSet.from_function: n={n} must be non-negative")
-        names = list(sources) if sources is not None else [f"{name}[{i}]" for i in range(n)]
-        return cls([functools.partial(render, i) for i in range(n)], names, name)
-
-    @classmethod
-    def of(cls, source: Any, name: str | None = None) -> ImageSet:
-        """An :class:`ImageSet` from a folder, a Dataset, or a sequence of images.
-
-        Parameters
-        ----------
-        source : ImageSet, str, PathLike, Dataset or sequence
-            A dataset folder (opened with :func:`forensics.io.dataset.open_dataset`), a
-            Dataset, or a sequence whose items are arrays, image paths, objects with
-            ``load()`` (and ``path``) such as :class:`forensics.io.dataset.Frame`, or
-            zero-argument callables returning an array.
-        name : str, optional
-            Name of the set (default: the folder, or 'set').
-
-        Raises
-        ------
-        InputError
-            If the folder is not a dataset.
-        UsageError
-            If ``source`` is none of the above (e.g. a generator: the protocol draws
-            images at random, so it needs to know how many there are).
-        """
-        from forensics.io.dataset import Dataset, open_dataset
-
-        if isinstance(source, ImageSet):
-            if name is not None:
-                return cls(source._loaders, source.sources, name)
-            return source
-        if isinstance(source, (str, os.PathLike)):
-            source = open_dataset(source)
-        if isinstance(source, Dataset):
-            frames = list(source.frames)
-            return cls([f.load for f in frames], [str(f.path) for f in frames], name or source.root.name or str(source.root))
-        if not (hasattr(source, "__len__") and hasattr(source, "__getitem__")) or isinstance(source, np.ndarray):
-            raise UsageError(
-                "an image set must be a dataset folder, a Dataset, or a sequence of images (arrays, paths, "
-                "frames or callables); generators and single arrays are not accepted"
-            )
-        label = name or "set"
-        loaders: list[Callable[[], np.ndarray]] = []
-        sources: list[str] = []
-        for i in range(len(source)):
-            item = source[i]
-            if isinstance(item, np.ndarray):
-                loaders.append(functools.partial(np.asarray, item))
-                sources.append(f"{label}[{i}]")
-            elif isinstance(item, (str, os.PathLike)):
-                from forensics.io.images import read_image
-
-                loaders.append(functools.partial(read_image, Path(item)))
-                sources.append(str(item))
-            elif hasattr(item, "load"):
-                loaders.append(item.load)
-                sources.append(str(getattr(item, "path", f"{label}[{i}]")))
-            elif callable(item):
-                loaders.append(item)
-                sources.append(f"{label}[{i}]")
-            else:
-                raise UsageError(f"{label}[{i}]: {type(item).__name__} is not an image, a path, a frame or a callable")
-        return cls(loaders, sources, label)
 
 
 # ----------------------------------------------------------------------------- selection
@@ -605,12 +501,10 @@ def _default_name(source: Any, fallback: str) -> str | None:
     return None if isinstance(source, (str, os.PathLike, Dataset, ImageSet)) else fallback
 
 
-def _build_fingerprint(images: ImageSet, indices: Sequence[int], region: Region, sigma: float, progress: Progress,
-                       desc: str, options: dict[str, Any]) -> Fingerprint:
-    builder = FingerprintBuilder(region, sigma, **options)
-    for i in progress(indices, total=len(indices), desc=desc):
-        builder.add(images.load(i), source=images.sources[i])
-    return builder.result()
+def _build_fingerprint(images: ImageSet, indices: Sequence[int], region: Region, sigma: float, executor: Executor,
+                       progress: Progress, desc: str, options: dict[str, Any]) -> Fingerprint:
+    job = FingerprintJob(FingerprintBuilder(region, sigma, **options), images, tuple(indices))
+    return build_fingerprints([job], executor=executor, progress=progress, desc=desc)[0]
 
 
 def same_device(
@@ -633,6 +527,7 @@ def same_device(
     median_size: int = 3,
     names: tuple[str, str] | None = None,
     progress: Progress = no_progress,
+    executor: Executor | None = None,
     **options: Any,
 ) -> SameDeviceResult:
     """The paper's same-device test on two image sets, with the fingerprint-ageing table.
@@ -666,7 +561,12 @@ def same_device(
     names : (str, str), optional
         Set names (default: the folders, or 'A' and 'B').
     progress : callable
-        ``progress(iterable, total=None, desc=None)``.
+        ``progress(iterable, total=None, desc=None)``: one bar per stage and set, counting work items.
+    executor : Executor, optional
+        Where the fingerprints are built (chunks of images) and the images scored (one item per
+        image); default in this process.  On worker processes or a cluster the sets' loaders must
+        be picklable (dataset folders and frames are).  The result does not depend on it: the
+        random draws (selection, bootstraps) are made here, from ``rng`` only.
     **options
         white_level, black_level, saturation_level, saturation_dilate, rolloff,
         workers — as :class:`forensics.prnu.fingerprint.FingerprintBuilder`.
@@ -684,6 +584,7 @@ def same_device(
     """
     rng = as_generator(rng)
     _check_options(ageing_residual, options)
+    ex = resolve(executor)
     region = parse_region(region)
     images_a, images_b = _open_sets(set_a, set_b, names)
     plans = [plan_set(len(s), rng, name=s.name, fingerprint_images=fingerprint_images, score_images=score_images,
@@ -692,14 +593,15 @@ def same_device(
     warnings = [w for p in plans for w in p.warnings]
 
     # 1. the two fingerprints
-    fps = [_build_fingerprint(s, p.fingerprint, region, fingerprint_sigma, progress, f"fingerprint {s.name}", options)
+    fps = [_build_fingerprint(s, p.fingerprint, region, fingerprint_sigma, ex, progress, f"fingerprint {s.name}",
+                              options)
            for s, p in zip((images_a, images_b), plans)]
     shape_a, shape_b = fps[0].frame_shape, fps[1].frame_shape
     if shape_a != shape_b:
         raise InputError(f"{images_a.name} has {shape_a[0]}×{shape_a[1]} frames, {images_b.name} "
                          f"{shape_b[0]}×{shape_b[1]}; both sets must come at one frame size and orientation")
     # 2. scores: each scoring image's residual once, against both fingerprints
-    own_other = [_score_set(s, p.score, fps[k], fps[1 - k], region, query_sigma, progress, options)
+    own_other = [_score_set(s, p.score, fps[k], fps[1 - k], region, query_sigma, ex, progress, options)
                  for k, (s, p) in enumerate(zip((images_a, images_b), plans))]
     (a_own, a_other), (b_own, b_other) = own_other
     verdict = eer_verdict(np.concatenate([a_own, b_own]), np.concatenate([a_other, b_other]), rng,
@@ -716,7 +618,7 @@ def same_device(
     table = None
     if ageing and plans[0].ageing_groups and plans[1].ageing_groups:
         groups = [build_ageing_fingerprints(s, p.ageing_groups, region, ageing_residual, fingerprint_sigma,
-                                            median_size, progress, f"ageing {s.name}", options)
+                                            median_size, progress, f"ageing {s.name}", options, executor=ex)
                   for s, p in zip((images_a, images_b), plans)]
         table = ageing_table(groups[0], groups[1], rng, names=(images_a.name, images_b.name),
                              residual=ageing_residual,
@@ -758,22 +660,40 @@ def _open_sets(set_a: Any, set_b: Any, names: tuple[str, str] | None) -> tuple[I
     return images_a, images_b
 
 
+@dataclass(frozen=True)
+class _Scoring:
+    """What every scoring item of one set needs (the items' shared data): the set and the two fingerprints."""
+
+    images: ImageSet
+    own: Fingerprint
+    other: Fingerprint
+    region: Region
+    sigma: float
+    options: dict[str, Any]
+
+
+def _score_image(task: _Scoring, index: int) -> tuple[float, float]:
+    """Work item: NCC of scoring image ``index`` with its own set's and the other set's fingerprint (one residual)."""
+    images = task.images
+    shape = tuple(task.own.frame_shape)
+    image = images.load(index)
+    if tuple(image.shape[:2]) != shape:
+        raise InputError(f"{images.sources[index]}: frame is {image.shape[0]}×{image.shape[1]}, the others are "
+                         f"{shape[0]}×{shape[1]}")
+    query = prepare_query(image, task.region, sigma=task.sigma, source=images.sources[index], **task.options)
+    del image
+    return score_pair(task.own, query, "ncc").value, score_pair(task.other, query, "ncc").value
+
+
 def _score_set(images: ImageSet, indices: Sequence[int], own_fp: Fingerprint, other_fp: Fingerprint, region: Region,
-               query_sigma: float, progress: Progress, options: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """NCC of each scoring image with its own set's and the other set's fingerprint (one residual per image)."""
-    shape = tuple(own_fp.frame_shape)
-    own = np.empty(len(indices))
-    other = np.empty(len(indices))
-    for j, i in enumerate(progress(indices, total=len(indices), desc=f"scoring {images.name}")):
-        image = images.load(i)
-        if tuple(image.shape[:2]) != shape:
-            raise InputError(f"{images.sources[i]}: frame is {image.shape[0]}×{image.shape[1]}, the others are "
-                             f"{shape[0]}×{shape[1]}")
-        query = prepare_query(image, region, sigma=query_sigma, source=images.sources[i], **options)
-        del image
-        own[j] = score_pair(own_fp, query, "ncc").value
-        other[j] = score_pair(other_fp, query, "ncc").value
-    return own, other
+               query_sigma: float, executor: Executor, progress: Progress,
+               options: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """NCC of each scoring image with its own set's and the other set's fingerprint, in index order."""
+    task = _Scoring(images, own_fp, other_fp, region, query_sigma, dict(options))
+    pairs = list(executor.map(_score_image, list(indices), shared=task, progress=progress,
+                              desc=f"scoring {images.name}"))
+    scores = np.array(pairs, dtype=np.float64).reshape(len(pairs), 2)
+    return scores[:, 0].copy(), scores[:, 1].copy()
 
 
 def _power_warning(verdict: EerVerdict, score_images: int, level: float) -> str:

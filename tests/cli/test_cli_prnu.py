@@ -64,6 +64,31 @@ def test_build_summary_and_refusal(cli, data, fingerprint):
     assert code == 0 and f"Fingerprint of {N} images" in out and "next: forensics fingerprint match" in out
 
 
+def test_build_on_two_workers_writes_the_same_fingerprint(cli_json, data, tmp_path):
+    from forensics.prnu.fingerprint import Fingerprint
+
+    one = cli_json("fingerprint", "build", data["cam1"], "-o", tmp_path / "one.npz", "--workers", "1")
+    two = cli_json("fingerprint", "build", data["cam1"], "-o", tmp_path / "two.npz", "--workers", "2")
+    assert one["execution"]["backend"] == "in-process"
+    assert two["execution"]["backend"] == "processes" and two["execution"]["workers"] == 2
+    fp1, fp2 = Fingerprint.load(tmp_path / "one.npz"), Fingerprint.load(tmp_path / "two.npz")
+    assert np.array_equal(fp1.K, fp2.K) and fp1.files == fp2.files and fp1.n_images == N
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.npz", "two.npz"]  # no checkpoint left behind
+
+
+def test_build_refuses_another_runs_checkpoint(cli, data, tmp_path):
+    """A working folder left by a build with other settings is never mixed in: refused, or replaced with --force."""
+    stale = tmp_path / ".fp.npz.partial"
+    stale.mkdir()
+    (stale / "config.json").write_text('{"command": "fingerprint build", "files": []}')
+    code, _, err = cli("fingerprint", "build", data["cam2"], "-o", tmp_path / "fp.npz", "--quiet", "--workers", "1")
+    assert code == 2 and "other settings" in err and stale.is_dir()
+    code, _, err = cli("fingerprint", "build", data["cam2"], "-o", tmp_path / "fp.npz", "--quiet", "--workers", "1",
+                       "--force")
+    assert code == 0, err
+    assert not stale.exists() and (tmp_path / "fp.npz").is_file()
+
+
 def test_match_pce_json_decides(cli_json, data, fingerprint):
     own = cli_json("fingerprint", "match", fingerprint, data["cam1"])
     other = cli_json("fingerprint", "match", fingerprint, data["cam2"])
@@ -72,6 +97,11 @@ def test_match_pce_json_decides(cli_json, data, fingerprint):
     assert own["n_match"] == N and all(r["pce"]["p_fa"] < 1e-10 for r in own["scores"])
     assert other["n_match"] == 0 and max(r["score"] for r in other["scores"]) < 30
     assert {r["file"] for r in other["scores"]} == {f"cam2_{i:03d}.png" for i in range(N)}
+    # one query per work item on two workers: the same scores, in the same order
+    two = cli_json("fingerprint", "match", fingerprint, data["cam2"], "--workers", "2")
+    one = cli_json("fingerprint", "match", fingerprint, data["cam2"], "--workers", "1")
+    assert two["execution"]["backend"] == "processes" and one["execution"]["backend"] == "in-process"
+    assert two["scores"] == one["scores"] == other["scores"]
 
 
 def test_match_table_and_report(cli, data, fingerprint, tmp_path):
@@ -107,6 +137,7 @@ def test_same_device_json_different_devices(cli_json, data):
     assert a["consistency"]["ci"][0] <= 0 <= a["consistency"]["ci"][1] and "share no detectable pattern" in a["verdict"]
     assert out["parameters"]["seed"] == 3 and out["sets"]["a"]["n_score"] == 16
     assert out["warnings"] == []  # every count as asked: nothing reduced
+    assert out["execution"]["backend"] in ("processes", "in-process")  # all cores by default
 
 
 def test_same_device_summary_report_and_power_warning(cli, data, tmp_path):
