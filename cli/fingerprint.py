@@ -2,10 +2,7 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
-import shutil
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -89,6 +86,7 @@ def _shift_range(text: str) -> int | None:
 
 def run_build(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
+    from forensics._shared.parallel import resumable_checkpoint
     from forensics.prnu.fingerprint import build_fingerprint, parse_region
 
     region = parse_region(args.region)
@@ -96,7 +94,10 @@ def run_build(args: argparse.Namespace) -> int:
     refuse_existing(out, args.force)  # before hours of work, not after
     ds = open_input(args, args.set)
     info(args, f"building a fingerprint from {len(ds)} images of {ds.root} ({region.spec}) …")
-    with executor_for(args) as ex, _resumable(out, _build_config(ds, region, args.sigma), args.force) as checkpoint:
+    # Finished chunks are kept in .FP.partial beside the output until it is written: an interrupted build resumes.
+    partial = out.with_name(f".{out.name}.partial")
+    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma),
+                                                        args.force) as checkpoint:
         fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), executor=ex,
                                checkpoint=checkpoint)
         fp.save(out, force=args.force)
@@ -133,32 +134,6 @@ def _build_config(ds: Any, region: Any, sigma: float) -> dict[str, Any]:
             files.append([str(frame.path), None, None])
     return {"command": "fingerprint build", "files": files, "region": region.spec, "sigma": sigma,
             "chunk_images": CHUNK_IMAGES, "version": __version__}
-
-
-@contextlib.contextmanager
-def _resumable(out: Path, config: dict[str, Any], force: bool) -> Iterator[Any]:
-    """A checkpoint of the build's chunks in ``.OUT.partial/`` beside the output, removed once the output is written.
-
-    An interrupted build leaves it, and the same command resumes from its chunks; a folder made with other
-    inputs or settings is refused (replaced with ``--force``).  Errors in the input cannot be resumed and
-    remove it.
-    """
-    from forensics._shared.errors import InputError, UsageError
-    from forensics._shared.parallel import Checkpoint
-
-    work = out.with_name(f".{out.name}.partial")
-    if force and work.exists():
-        try:
-            Checkpoint(work, config)
-        except UsageError:  # made with other inputs or settings: start again
-            shutil.rmtree(work)
-    checkpoint = Checkpoint(work, config)  # refuses another run's folder before anything is removed
-    try:
-        yield checkpoint
-    except (InputError, UsageError):
-        shutil.rmtree(work, ignore_errors=True)
-        raise
-    shutil.rmtree(work, ignore_errors=True)
 
 
 def run_match(args: argparse.Namespace) -> int:

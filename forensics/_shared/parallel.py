@@ -134,17 +134,47 @@ class Checkpoint:
         return sum(1 for _ in self.folder.glob("item-*.pkl"))
 
 
+def _matches(folder: Path, config: dict[str, Any]) -> bool:
+    """Whether the checkpoint in ``folder`` (if any) was made with ``config``."""
+    try:
+        Checkpoint(folder, config)
+    except UsageError:
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def resumable_checkpoint(folder: str | os.PathLike, config: dict[str, Any], force: bool = False
+                         ) -> Iterator[Checkpoint]:
+    """A :class:`Checkpoint` in ``folder`` for the duration of one run that must survive interruption.
+
+    A folder left by a run with other settings is refused (replaced with ``force``).  On success the folder
+    is removed; an interruption or a crash leaves it for the next run to resume from; errors in the input
+    (:class:`~forensics._shared.errors.InputError`, :class:`UsageError`) cannot be resumed and remove it.
+    """
+    from forensics._shared.errors import InputError
+
+    folder = Path(folder)
+    if force and folder.exists() and not _matches(folder, config):
+        shutil.rmtree(folder)
+    checkpoint = Checkpoint(folder, config)
+    try:
+        yield checkpoint
+    except (InputError, UsageError):
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    shutil.rmtree(folder, ignore_errors=True)
+
+
 @contextlib.contextmanager
 def resumable_directory(out: str | os.PathLike, config: dict[str, Any], force: bool = False
                         ) -> Iterator[tuple[Path, Checkpoint]]:
     """An output folder built in a fixed working folder beside it (``.OUT.partial``) that survives interruption.
 
     Yields ``(work, checkpoint)``: write the outputs into ``work`` and record each finished item in
-    ``checkpoint``.  On success ``work`` is renamed onto ``out`` (replacing it only with ``force``), so the
-    output appears whole or not at all.  On an interruption or a crash the working folder stays, and the
-    same command run again resumes from the finished items (the checkpoint refuses other settings).  Errors
-    in the input (:class:`~forensics._shared.errors.InputError`, :class:`UsageError`) cannot be resumed and
-    remove it.
+    ``checkpoint`` (:func:`resumable_checkpoint` in ``work/.items``).  On success ``work`` is renamed onto
+    ``out`` (replacing it only with ``force``), so the output appears whole or not at all.  After an
+    interruption the same call resumes from the finished items; errors in the input remove the working folder.
     """
     from forensics._shared.atomic import refuse_existing
     from forensics._shared.errors import InputError
@@ -152,19 +182,15 @@ def resumable_directory(out: str | os.PathLike, config: dict[str, Any], force: b
     out = refuse_existing(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
     work = out.with_name(f".{out.name}.partial")
-    if force and work.exists():
-        try:
-            Checkpoint(work / ".items", config)
-        except UsageError:  # made with other settings: start again
-            shutil.rmtree(work)
+    if force and work.exists() and not _matches(work / ".items", config):
+        shutil.rmtree(work)  # another run's files, not only its checkpoint
     work.mkdir(exist_ok=True)
-    checkpoint = Checkpoint(work / ".items", config)
     try:
-        yield work, checkpoint
+        with resumable_checkpoint(work / ".items", config) as checkpoint:
+            yield work, checkpoint
     except (InputError, UsageError):
         shutil.rmtree(work, ignore_errors=True)
         raise
-    shutil.rmtree(work / ".items")
     if out.exists():
         old = out.with_name(f".{out.name}.old-{os.getpid()}")
         os.replace(out, old)
