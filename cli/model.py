@@ -5,7 +5,17 @@ import argparse
 import math
 from typing import Any
 
-from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for
+from forensics.cli.common import (
+    add_execution_options,
+    add_input_options,
+    add_output_options,
+    command_parser,
+    emit,
+    executor_for,
+    info,
+    open_input,
+    progress_for,
+)
 
 
 def register(sub) -> None:
@@ -45,6 +55,8 @@ def register(sub) -> None:
     check.add_argument("--region", default=None, metavar="TOP,LEFT,HEIGHT,WIDTH",
                        help="check only this part of every frame (pixels; a single number N: the central N×N); "
                             "default the whole frame, whatever its size; the warnings say which region was used")
+    add_input_options(check)
+    add_execution_options(check)
     add_output_options(check)
     check.set_defaults(handler=run_check)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
@@ -98,12 +110,15 @@ def run_check(args: argparse.Namespace) -> int:
 
         raise UsageError("--max-steps needs --auto")
     info(args, f"forensics model check: reading {args.data} …")
-    result = check(args.data, add=args.add, rng=args.seed, progress=progress_for(args),
-                   region=parse_region(args.region, args.data))
+    ds = open_input(args, args.data)
+    region = parse_region(args.region, ds)
+    with executor_for(args) as ex:
+        result = check(ds, add=args.add, rng=args.seed, progress=progress_for(args), region=region, executor=ex)
+        execution = ex.info()
     if args.report:
         path = check_report(result, title=f"Model check: {args.data}").write(args.report, force=args.force)
         info(args, f"report: {path}")
-    emit(args, lambda: format_check(result), result.to_dict)
+    emit(args, lambda: format_check(result), lambda: {**result.to_dict(), "execution": execution.to_dict()})
     return 0
 
 
@@ -112,17 +127,23 @@ def _run_auto(args: argparse.Namespace) -> int:
     from forensics.report.check import selection_report
 
     info(args, f"forensics model check --auto: reading {args.data} …")
-    sel = check_auto(args.data, add=args.add, rng=args.seed, max_steps=5 if args.max_steps is None else args.max_steps,
-                     progress=progress_for(args), region=parse_region(args.region, args.data))
+    ds = open_input(args, args.data)
+    region = parse_region(args.region, ds)
+    with executor_for(args) as ex:
+        sel = check_auto(ds, add=args.add, rng=args.seed, max_steps=5 if args.max_steps is None else args.max_steps,
+                         progress=progress_for(args), region=region, executor=ex)
+        execution = ex.info()
     if args.report:
         path = selection_report(sel, title=f"Model check (--auto): {args.data}").write(args.report, force=args.force)
         info(args, f"report: {path}")
-    emit(args, lambda: format_check(sel.result) + "\n\n" + format_ladder(sel), sel.to_dict)
+    emit(args, lambda: format_check(sel.result) + "\n\n" + format_ladder(sel),
+         lambda: {**sel.to_dict(), "execution": execution.to_dict()})
     return 0
 
 
-def parse_region(spec: str | None, data: str) -> tuple[int, int, int, int] | None:
-    """``--region``: ``TOP,LEFT,HEIGHT,WIDTH`` or ``N`` (the central N×N of the dataset's frames); None: whole."""
+def parse_region(spec: str | None, ds: Any) -> tuple[int, int, int, int] | None:
+    """``--region``: ``TOP,LEFT,HEIGHT,WIDTH`` or ``N`` (the central N×N of the frames of the dataset ``ds``);
+    None: whole frames."""
     from forensics._shared.errors import UsageError
 
     if spec is None:
@@ -133,9 +154,8 @@ def parse_region(spec: str | None, data: str) -> tuple[int, int, int, int] | Non
         values = []
     if len(values) == 1 and values[0] > 0:
         from forensics.check.measurements import central_region
-        from forensics.io.dataset import open_dataset
 
-        return central_region(open_dataset(data).shape(), values[0])
+        return central_region(ds.shape(), values[0])
     if len(values) != 4 or min(values) < 0 or min(values[2:]) < 1:
         raise UsageError(f"--region {spec!r}: give TOP,LEFT,HEIGHT,WIDTH in pixels (e.g. 0,0,1024,1024) or one "
                          "size N for the central N×N")

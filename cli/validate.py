@@ -3,7 +3,15 @@ from __future__ import annotations
 
 import argparse
 
-from forensics.cli.common import add_output_options, command_parser, emit, info, progress_for
+from forensics.cli.common import (
+    add_execution_options,
+    add_output_options,
+    command_parser,
+    emit,
+    executor_for,
+    info,
+    progress_for,
+)
 
 
 def register(sub) -> None:
@@ -26,6 +34,7 @@ def register(sub) -> None:
     parser.add_argument("--read-noise", type=float, default=40.0, help="read noise σ in DN (default 40)")
     parser.add_argument("--scenes", choices=["smooth", "mixed", "photo", "texture"], default="smooth",
                         help="scene pool: smooth low-texture scenes (default) or the toolkit's scene kinds")
+    add_execution_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -52,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
     settings = ValidationSettings(sensor=args.sensor.upper(), shape=shape, bit_depth=args.bits,
                                   read_noise=args.read_noise, images=args.images, scenes=args.scenes)
     fn = validate_defects if args.what == "defects" else validate_dating
-    result = fn(settings, args.trials, rng=args.seed, progress=progress_for(args))
+    with executor_for(args) as ex:
+        result = fn(settings, args.trials, rng=args.seed, progress=progress_for(args), executor=ex)
+        execution = ex.info()
 
     def summary() -> str:
         rows = result.table()
@@ -63,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         lines.append("all acceptance figures met" if result.passed else "some acceptance figures NOT met")
         return "\n".join(lines)
 
-    emit(args, summary, result.to_dict)
+    emit(args, summary, lambda: {**result.to_dict(), "execution": execution.to_dict()})
     if args.report:
         path = validation_report(result).write(args.report, force=args.force)
         info(args, f"report: {path}")

@@ -8,13 +8,18 @@ the noise of a residual actually is, whether the temporal noise is white or spat
 JPEG-compressed frames) and whether or not the frames' overall level drifts (a level change is part of every
 frame's scene estimate, so it is not in the residual).  What the data limit is measured on the way: the
 spatial correlation of the temporal noise and the spread of the frame means (:class:`NoiseTraits`).
+
+Conditions are independent: each is one work item of the execution layer (:mod:`forensics._shared.parallel`),
+read from its frames' paths by whichever worker runs it (:func:`condition_stats`), and the per-condition
+results are assembled in condition order, so the measurements are bit-identical on every backend (and to
+reading the frames in one loop).
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage, stats
@@ -26,7 +31,10 @@ from forensics._shared.progress import Progress, no_progress
 from forensics.check.classes import QUANT_VAR
 from forensics.check.scene import KERNEL, KERNEL_VAR, SCENE_SIZE, scene_estimate
 from forensics.io.dataset import LIGHT_COLUMN, Dataset, open_dataset, split_epochs
-from forensics.io.stack import StackAccumulator
+from forensics.io.stack import StackAccumulator, StackStats, prefetch
+
+if TYPE_CHECKING:  # the execution layer is imported where the frames are read
+    from forensics._shared.parallel import Executor
 
 
 @dataclass
@@ -200,6 +208,20 @@ def block_means(grey: np.ndarray, size: int = DRIFT_BLOCK) -> np.ndarray:
     return grey[:h, :w].reshape(h // size, size, w // size, size).mean(axis=(1, 3)).ravel()
 
 
+def lag1_terms(previous: np.ndarray, current: np.ndarray, box: int = LAG_BOX) -> tuple[float, float] | None:
+    """One pair of consecutive frames' contribution to :class:`Lag1`: (lag-1 cross product, square), each a
+    mean over the high-passed difference of the frames; None when the frames are too small for the box."""
+    # the difference of two frames of one condition is noise plus a smooth level change; the box mean removes
+    # the latter (it lowers a white noise's lag-1 correlation by ≈ 1/box², negligible)
+    d = current - previous
+    hp = (d - ndimage.uniform_filter(d, size=box, mode="reflect"))[box:-box, box:-box]
+    if hp.size == 0:
+        return None
+    cross = 0.5 * (float(np.sum(hp[:, 1:] * hp[:, :-1])) / max(hp[:, 1:].size, 1)
+                   + float(np.sum(hp[1:] * hp[:-1])) / max(hp[1:].size, 1))
+    return cross, float(np.mean(hp * hp))
+
+
 class Lag1:
     """Accumulates the lag-1 spatial correlation of the temporal noise from consecutive frames' differences."""
 
@@ -209,15 +231,14 @@ class Lag1:
         self.square = 0.0
 
     def add(self, previous: np.ndarray, current: np.ndarray) -> None:
-        # the difference of two frames of one condition is noise plus a smooth level change; the box mean removes
-        # the latter (it lowers a white noise's lag-1 correlation by ≈ 1/box², negligible)
-        d = current - previous
-        hp = (d - ndimage.uniform_filter(d, size=self.box, mode="reflect"))[self.box:-self.box, self.box:-self.box]
-        if hp.size == 0:
-            return
-        self.cross += 0.5 * (float(np.sum(hp[:, 1:] * hp[:, :-1])) / max(hp[:, 1:].size, 1)
-                             + float(np.sum(hp[1:] * hp[:-1])) / max(hp[1:].size, 1))
-        self.square += float(np.mean(hp * hp))
+        self.add_terms(lag1_terms(previous, current, self.box))
+
+    def add_terms(self, terms: tuple[float, float] | None) -> None:
+        """Add one pair's :func:`lag1_terms` (computed anywhere; added in frame order, the sums are those of
+        :meth:`add` to the last bit)."""
+        if terms is not None:
+            self.cross += terms[0]
+            self.square += terms[1]
 
     def result(self) -> float | None:
         return self.cross / self.square if self.square > 0 else None
@@ -289,8 +310,88 @@ def pool_scenes(ds: Dataset, groups: list[Group]) -> list[Group]:
     return out
 
 
+@dataclass(frozen=True)
+class ConditionFrames:
+    """One condition as a work item of :func:`load_measurements`: where its frames are and what to measure.
+
+    Small and picklable (paths, not pixels): the worker that runs it reads the frames itself."""
+
+    paths: tuple[str, ...]
+    names: tuple[str, ...]  #: the frames' file names (for messages)
+    crop: tuple[slice, slice]  #: the region analysed
+    repeated: bool  #: two or more frames: the pixel channel's halves, residuals and noise traits are measured
+    scenes: bool  #: already known to be different scenes (photographs pooled per epoch)
+
+
+@dataclass
+class ConditionStats:
+    """What one condition's frames reduce to (:func:`condition_stats`); arrays of the region's shape."""
+
+    whole: StackStats
+    halves: tuple[StackStats, StackStats] | None  #: even and odd frames (repeated conditions)
+    var_resid: np.ndarray | None  #: temporal variance of the frames' residuals (repeated conditions)
+    scenes: bool  #: the frames are different scenes (given, or found from the first two frames' content)
+    found_scenes: bool  #: found from the content here (not known from the grouping)
+    half_ms: np.ndarray | None  #: photographs: ``(2, H, W)`` sums of squared residuals per half (not yet means)
+    blocks: np.ndarray | None  #: repeats: every frame's :func:`block_means`, ``(n_frames, n_blocks)``
+    lag: list[tuple[float, float] | None]  #: :func:`lag1_terms` of consecutive repeats, in frame order
+    dtype: np.dtype  #: the first frame's pixel type
+    scene: np.ndarray  #: :func:`~forensics.check.scene.scene_estimate` of the condition's mean
+
+
+def condition_stats(item: ConditionFrames) -> ConditionStats:
+    """Read one condition's frames (in order, decoding one ahead) and reduce them: the work item of
+    :func:`load_measurements` (module-level, so that workers import it by reference)."""
+    from forensics.io.images import read_image
+
+    crop = item.crop
+    whole, halves, resid = StackAccumulator(), (StackAccumulator(), StackAccumulator()), StackAccumulator()
+    scenes, found = item.scenes, False
+    previous = None
+    frame_blocks: list[np.ndarray] = []
+    lag: list[tuple[float, float] | None] = []
+    ms: np.ndarray | None = None
+    stacked_dtype = None  # what this condition's stack accumulates (set by its first frame)
+    first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame's squared residual and block means
+    dtype = None
+    for j, (name, img) in enumerate(zip(item.names, prefetch(read_image(p) for p in item.paths))):
+        dtype = img.dtype if dtype is None else dtype
+        grey = grey_mean(img[crop], np.float64)
+        stacked = _stackable(img[crop], grey, stacked_dtype)
+        stacked_dtype = stacked.dtype
+        whole.add(stacked, name=name)
+        halves[j % 2].add(stacked, name=name)
+        if not item.repeated:
+            continue
+        res = frame_residual(grey)
+        resid.add(res, name=name)
+        if j == 0:
+            first = ((res * res).astype(np.float32), block_means(grey))
+        elif j == 1 and not scenes and different_scenes(first[1], block_means(grey), float(np.mean(res**2))):
+            scenes = found = True  # a condition without metadata to tell photographs apart: their content does
+            frame_blocks.clear()  # neither the level-drift test nor the noise's correlation applies
+        if scenes:
+            if ms is None:
+                ms = np.zeros((2, *grey.shape), np.float32)
+            if j == 1 and found:  # found different at this frame: the first frame is not in its half yet
+                ms[0] += first[0]
+            ms[j % 2] += (res * res).astype(np.float32)
+        else:  # repeats: the level-drift test's blocks and the noise's spatial correlation
+            frame_blocks.append(block_means(grey))
+            if previous is not None:
+                lag.append(lag1_terms(previous, grey))
+            previous = grey
+    total = whole.result()
+    scene = scene_estimate(total.mean.astype(np.float64))  # of the float64 mean, as the measurements hold it
+    if not item.repeated:
+        return ConditionStats(total, None, None, scenes, found, None, None, lag, np.dtype(dtype), scene)
+    return ConditionStats(total, (halves[0].result(), halves[1].result()), resid.result().var, scenes, found, ms,
+                          np.array(frame_blocks), lag, np.dtype(dtype), scene)
+
+
 def load_measurements(data: Dataset | str | Path, border: int | None = None, epoch_gap: float = 0.25,
-                      region: Region | None = None, progress: Progress = no_progress) -> Measurements:
+                      region: Region | None = None, progress: Progress = no_progress,
+                      executor: Executor | None = None) -> Measurements:
     """Read every frame once and reduce the dataset to per-condition statistics.
 
     Parameters
@@ -305,12 +406,20 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
         ``(top, left, height, width)``: analyse only this part of every frame (said in the notes); default the
         whole frame, whatever its size (frames are read one at a time, so memory is a few per-condition
         arrays of the frame's size).  :func:`central_region` gives a centred one.
+    progress
+        Progress callable: one bar counting the conditions read.
+    executor
+        The execution layer (None: in this process).  Each condition is one work item
+        (:func:`condition_stats`); a worker reads the condition's frames from their paths, so on a cluster
+        the dataset must be on storage every worker sees.
 
     Raises
     ------
     InputError
         No condition has two or more frames (the noise floor cannot be measured).
     """
+    from forensics._shared.parallel import resolve
+
     ds = data if isinstance(data, Dataset) else open_dataset(data)
     shape = ds.shape()
     notes = []
@@ -340,69 +449,55 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
                              "the noise floor is measured from repeated frames of one condition (same exposure_s, "
                              "iso, temperature_c, subject, light and epoch): take at least 2 frames per condition")
         notes.append(PHOTOGRAPHS_NOTE)
-    shp = (crop[0].stop - crop[0].start, crop[1].stop - crop[1].start)
+    items = [ConditionFrames(tuple(str(ds.frames[i].path) for i in g.frames),
+                             tuple(ds.frames[i].file for i in g.frames), crop, g.n >= 2, g.scenes) for g in groups]
+    parts = resolve(executor).map(condition_stats, items, progress=progress, desc="conditions")
+    return _assemble(ds, groups, repeated, parts, (crop[0].stop - crop[0].start, crop[1].stop - crop[1].start),
+                     notes, has_time, epoch_times, border)
+
+
+def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any, shp: tuple[int, int],
+              notes: list[str], has_time: bool, epoch_times: np.ndarray, border: int | None) -> Measurements:
+    """The :class:`Measurements` from the conditions' :class:`ConditionStats`, taken in condition order (so
+    the float sums over conditions are the same whichever process computed each)."""
     G, R = len(groups), len(repeated)
-    mean_all, var_all, lo, hi = (np.zeros((G, *shp)) for _ in range(4))
+    mean_all, var_all, lo, hi, scene_all, var_resid = (np.zeros((G, *shp)) for _ in range(6))
     mean_a, mean_b = np.zeros((R, *shp)), np.zeros((R, *shp))
     n_a, n_b = np.zeros(R, int), np.zeros(R, int)
     rpos = {g: r for r, g in enumerate(repeated)}
-    var_resid = np.zeros((G, *shp))
     photo_ms: dict[int, np.ndarray] = {}  # repeated condition → (2, H, W) residual mean squares per half
     lag = Lag1()
     blocks: list[np.ndarray] = []
     dtype = None
-    for g in progress(groups, total=G, desc="frames"):
-        whole, halves = StackAccumulator(), (StackAccumulator(), StackAccumulator())
-        resid = StackAccumulator()
-        previous = None
-        frame_blocks = []
-        stacked_dtype = None  # what this condition's stack accumulates (set by its first frame)
-        first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame's squared residual and block means
-        for j, i in enumerate(g.frames):
-            img = ds.frames[i].load()
-            dtype = img.dtype if dtype is None else dtype
-            grey = grey_mean(img[crop], np.float64)
-            stacked = _stackable(img[crop], grey, stacked_dtype)
-            stacked_dtype = stacked.dtype
-            whole.add(stacked, name=ds.frames[i].file)
-            halves[j % 2].add(stacked, name=ds.frames[i].file)
-            if g.index in rpos:
-                res = frame_residual(grey)
-                resid.add(res, name=ds.frames[i].file)
-                if j == 0:
-                    first = ((res * res).astype(np.float32), block_means(grey))
-                elif j == 1 and not g.scenes and different_scenes(first[1], block_means(grey), float(np.mean(res**2))):
-                    g.scenes = True  # a condition without metadata to tell photographs apart: their content does
-                    frame_blocks.clear()  # neither the level-drift test nor the noise's correlation applies
-                    if PHOTOGRAPHS_NOTE not in notes:
-                        notes.append(PHOTOGRAPHS_NOTE)
-                if g.scenes:
-                    ms = photo_ms.setdefault(rpos[g.index], np.zeros((2, *shp), np.float32))
-                    if j == 1:
-                        ms[0] += first[0]
-                    ms[j % 2] += (res * res).astype(np.float32)
-                else:  # repeats: the level-drift test's blocks and the noise's spatial correlation
-                    frame_blocks.append(block_means(grey))
-                    if previous is not None:
-                        lag.add(previous, grey)
-                    previous = grey
-        stats = whole.result()
-        mean_all[g.index], var_all[g.index] = stats.mean, stats.var
-        lo[g.index], hi[g.index] = stats.minimum, stats.maximum
-        if g.index in rpos:
-            r = rpos[g.index]
-            a, b = halves[0].result(), halves[1].result()
-            mean_a[r], mean_b[r] = a.mean, b.mean
-            n_a[r], n_b[r] = a.n, b.n
-            var_resid[g.index] = resid.result().var
-            if g.scenes:
-                photo_ms[r][0] /= a.n
-                photo_ms[r][1] /= b.n
-                # a pixel's spread over different scenes is the scenes', not noise: what stands for its temporal
-                # variance is the spread of its residual from each photograph's own scene estimate (noise and
-                # the scenes' texture finer than the estimate), per frame rather than per residual
-                var_all[g.index] = var_resid[g.index] / (1.0 + KERNEL_VAR)
-            blocks.append(np.array(frame_blocks))
+    for g, part in zip(groups, parts):
+        dtype = part.dtype if dtype is None else dtype  # the first frame's
+        total = part.whole
+        mean_all[g.index], var_all[g.index] = total.mean, total.var
+        lo[g.index], hi[g.index] = total.minimum, total.maximum
+        scene_all[g.index] = part.scene
+        if part.found_scenes:
+            g.scenes = True
+            if PHOTOGRAPHS_NOTE not in notes:
+                notes.append(PHOTOGRAPHS_NOTE)
+        for terms in part.lag:
+            lag.add_terms(terms)
+        if g.index not in rpos:
+            continue
+        r = rpos[g.index]
+        a, b = part.halves
+        mean_a[r], mean_b[r] = a.mean, b.mean
+        n_a[r], n_b[r] = a.n, b.n
+        var_resid[g.index] = part.var_resid
+        if g.scenes:
+            ms = part.half_ms
+            ms[0] /= a.n
+            ms[1] /= b.n
+            photo_ms[r] = ms
+            # a pixel's spread over different scenes is the scenes', not noise: what stands for its temporal
+            # variance is the spread of its residual from each photograph's own scene estimate (noise and
+            # the scenes' texture finer than the estimate), per frame rather than per residual
+            var_all[g.index] = var_resid[g.index] / (1.0 + KERNEL_VAR)
+        blocks.append(part.blocks)
     half_ms = None
     if photo_ms:
         half_ms = np.zeros((R, 2, *shp), np.float32)  # zero for conditions of repeats (not used there)
@@ -412,12 +507,9 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     border = SCENE_SIZE // 2 if border is None else int(border)
     meas = Measurements(ds.root, shp, full_scale, border, epoch_times, has_time, groups, mean_all, var_all, lo, hi,
                         repeated, mean_a, mean_b, n_a, n_b, len(ds), notes=notes, var_resid=var_resid,
-                        half_ms=half_ms)
+                        half_ms=half_ms, scene_all=scene_all)
     jpeg = any(Path(f.file).suffix.lower() in JPEG_SUFFIXES for f in ds.frames)
     meas.traits = NoiseTraits(lag.result(), blocks, jpeg)
-    meas.scene_all = np.empty_like(mean_all)
-    for g, m in enumerate(mean_all):
-        meas.scene_all[g] = scene_estimate(m)
     return meas
 
 

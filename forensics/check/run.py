@@ -1,12 +1,20 @@
 """Entry points: the base model, the candidates, and :func:`check` — measurements → evidence → fit →
-goodness of fit → diagnosis → result."""
+goodness of fit → diagnosis → result.
+
+On the execution layer (:mod:`forensics._shared.parallel`): the frames are read condition by condition on the
+workers (:func:`~forensics.check.measurements.load_measurements`), and :func:`check`'s model and its baseline
+— two fits of one evidence that are both needed — are independent work items (:func:`fit_models`) sharing the
+evidence.  A fit draws only from the check's keyed streams (:mod:`forensics.check.streams`, fresh generators
+for every fit), so every model's result is the same on every backend.
+"""
 from __future__ import annotations
 
 import math
+import pickle
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,6 +46,9 @@ from forensics.io.images import is_raw, read_raw
 from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.sensor.effects import BlackLevel
 from forensics.sensor.model import EFFECTS, Effect, make_effect
+
+if TYPE_CHECKING:
+    from forensics._shared.parallel import Executor
 
 
 def base_model(black_level: float | None = None) -> list[Effect]:
@@ -167,10 +178,45 @@ def _data_summary(ev: Evidence, fitted: FittedModel) -> dict[str, Any]:
             "held_out_means": {name: int(np.sum(ev.usable & (px.classes == k))) for k, name in enumerate(CLASSES)}}
 
 
+def fit_executor(executor: Executor | None, models: Sequence[Sequence[Effect]]) -> Executor:
+    """The executor that fits ``models``: ``executor`` (None: in-process), or in-process when an effect cannot be
+    sent to a worker — an instance of a class a worker cannot import (one defined inside a function or in an
+    interactive session) does not pickle.  (A class loaded from a user's ``file.py:Class`` travels by its spec:
+    :mod:`forensics._shared.plugins`.)"""
+    from forensics._shared.parallel import in_process, resolve
+
+    ex = resolve(executor)
+    if ex.backend == "in-process":
+        return ex
+    try:
+        pickle.dumps([list(m) for m in models])
+    except (pickle.PicklingError, AttributeError, TypeError):
+        return in_process()
+    return ex
+
+
+def _check_model(ev: Evidence, effects: list[Effect]) -> CheckResult:
+    """Work item of :func:`fit_models` (module-level, so that workers import it by reference)."""
+    return run_check(ev, effects)
+
+
+def fit_models(ev: Evidence, models: Sequence[Sequence[Effect]], executor: Executor | None = None) -> Iterator[CheckResult]:
+    """:func:`run_check` of every model on one evidence, in the order of ``models``; each model is one work item.
+
+    The evidence is the items' shared data: shipped once to every worker that fits a model, so a worker holds a
+    copy of it (the per-condition arrays of :class:`Measurements`) — with two models, two workers do.  A single
+    model is fitted in this process.
+    """
+    models = [list(m) for m in models]
+    yield from fit_executor(executor, models).map(_check_model, models, shared=ev, desc="fits")
+
+
 def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect], rng: RngLike, n_sim: int,
-            progress: Progress = no_progress, region: Region | None = None) -> tuple[Evidence, list[Effect]]:
+            progress: Progress = no_progress, region: Region | None = None,
+            executor: Executor | None = None) -> tuple[Evidence, list[Effect]]:
     """The evidence of a dataset and the effects to add to the base model (refusing one already in it);
-    ``region`` as in :func:`~forensics.check.measurements.load_measurements` (whole frames by default)."""
+    ``region`` as in :func:`~forensics.check.measurements.load_measurements` (whole frames by default), which
+    reads the conditions on ``executor``."""
     extra = resolve_effects(add)
     names = [e.key for e in base_model()]
     for e in extra:
@@ -180,15 +226,17 @@ def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effec
     if isinstance(data, Measurements):
         if region is not None:
             raise UsageError("a region is chosen when the frames are read (load_measurements), not afterwards")
-        meas = data
+        meas, source = data, data.root
     else:
-        meas = load_measurements(data, region=region, progress=progress)
-    return Evidence(meas, rng=rng, n_sim=n_sim, black_level=metadata_black_level(meas.root)), extra
+        # opened once, as given (a Dataset keeps how it was opened, e.g. with files outside its folder)
+        source = data if isinstance(data, Dataset) else open_dataset(data)
+        meas = load_measurements(source, region=region, progress=progress, executor=executor)
+    return Evidence(meas, rng=rng, n_sim=n_sim, black_level=metadata_black_level(source)), extra
 
 
 def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
           baseline: bool = True, n_sim: int = 199, progress: Progress = no_progress,
-          region: Region | None = None) -> CheckResult:
+          region: Region | None = None, executor: Executor | None = None) -> CheckResult:
     """Fit the base model plus ``add`` to a dataset, score it and diagnose what is missing.
 
     Parameters
@@ -206,16 +254,24 @@ def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect]
         (for before/after comparisons).
     n_sim
         Monte-Carlo simulations of the fitted arrival model.
+    progress
+        Progress callable for reading the frames (one bar counting the conditions).
     region
         ``(top, left, height, width)``: check only this part of every frame (the warnings say so); default the
         whole frame (:func:`~forensics.check.measurements.load_measurements`).
+    executor
+        The execution layer (None: in this process): the conditions are read on it, and the model and its
+        baseline are fitted side by side (:func:`fit_models`).
 
     Returns
     -------
     CheckResult
     """
-    ev, extra = prepare(data, add, rng, n_sim, progress, region)
-    result = run_check(ev, [*base_model(ev.black_level), *extra])
+    ev, extra = prepare(data, add, rng, n_sim, progress, region, executor)
+    models = [[*base_model(ev.black_level), *extra]]
     if extra and baseline:
-        result.baseline = run_check(ev, base_model(ev.black_level))
+        models.append(base_model(ev.black_level))
+    result, *before = fit_models(ev, models, executor)
+    if before:
+        result.baseline = before[0]
     return result

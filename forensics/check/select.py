@@ -9,6 +9,11 @@ goodness of fit at each step — is a :class:`SelectionResult`.
 An addition is kept only if it improves the fit: some channel's error falls beyond its noise
 (:data:`ERROR_TOL`) or some failing goodness of fit recovers (:data:`GOF_RISE`).  If the top candidate does
 not, the next flagged one is tried (once per model); if that fails too, the path stops and says why.  :func:`check_auto` is the convenience entry point from a dataset.
+
+On the execution layer (``executor``) the frames are read condition by condition; the path itself is fitted
+in this process: each step depends on the one before, and a step fits its second candidate only when the
+first is not kept — fitting both side by side would usually spend a second fit to gain nothing (the top
+flagged candidate is usually kept) and could only finish later than fitting the first alone.
 """
 from __future__ import annotations
 
@@ -17,7 +22,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +36,9 @@ from forensics.check.result import CheckResult
 from forensics.check.run import base_model, prepare, resolve_effects, run_check
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import Effect
+
+if TYPE_CHECKING:
+    from forensics._shared.parallel import Executor
 
 #: An error channel "falls beyond its noise" when it drops by more than this fraction of its value.  The pixel
 #: channel's is computed from the number n of held-out pixel means (:func:`pixel_error_tolerance`); this value
@@ -278,7 +286,7 @@ def _done(steps: list[Step], refused: list[Attempt], reason: str, stopped: str) 
 
 def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,
                max_steps: int = 5, n_sim: int = 199, progress: Progress = no_progress,
-               region: Region | None = None) -> SelectionResult:
+               region: Region | None = None, executor: Executor | None = None) -> SelectionResult:
     """Forward selection on a dataset: the base model plus ``add``, then flagged candidates one at a time.
 
     Parameters
@@ -298,10 +306,13 @@ def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Ef
         Progress callable for reading the frames.
     region
         ``(top, left, height, width)``: check only this part of every frame (default the whole frame).
+    executor
+        The execution layer (None: in this process): the conditions are read on it; the path is fitted here
+        (see the module docstring).
 
     Returns
     -------
     SelectionResult
     """
-    ev, extra = prepare(data, add, rng, n_sim, progress, region)
+    ev, extra = prepare(data, add, rng, n_sim, progress, region, executor)
     return forward_select(ev, [*base_model(ev.black_level), *extra], max_steps=max_steps)

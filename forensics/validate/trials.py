@@ -32,8 +32,13 @@ and for all trials.
 Randomness: ``validate_defects`` and ``validate_dating`` take ``rng`` (a Generator or an int seed).  The
 scene pool and every trial draw from their own stream, keyed by the run's seed and the trial's index
 (:func:`forensics._shared.rng.keyed_generator`: ``default_rng([seed, 2, i])`` for trial ``i`` of an
-integer seed), so a trial can be re-run alone and trials can run in any order or process.  The figures
-and the report of a run are in :mod:`forensics.report.validate`.
+integer seed), so a trial can be re-run alone and trials can run in any order or process.
+
+Execution: every trial is one work item of the execution layer (:mod:`forensics._shared.parallel`): a
+:class:`Trial` (its index and the run's seed) run by :func:`run_defects_trial` or :func:`run_dating_trial`,
+with the settings and the scene pool as the items' shared data (made once, in this process).  Trials keep
+their frames in memory and write nothing.  Records come back in trial order, so the summaries are identical
+on every backend.  The figures and the report of a run are in :mod:`forensics.report.validate`.
 """
 from __future__ import annotations
 
@@ -45,8 +50,9 @@ from typing import Any
 import numpy as np
 
 from forensics._shared.errors import InputError
+from forensics._shared.parallel import Executor, resolve
 from forensics._shared.progress import Progress, no_progress
-from forensics._shared.rng import RngLike, as_generator, seed_record
+from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
 from forensics.defects.detection import DEFAULT_Q, DEFAULT_SIGMA, DetectionResult, MaskSpec, detect
 from forensics.defects.growth import Epoch, estimate_growth
 from forensics.io.stack import StackAccumulator
@@ -55,7 +61,6 @@ from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.sensor.model import Device, SensorModel
 from forensics.sensor.presets import PRESETS, preset
 from forensics.sensor.scenes import scene
-from forensics._shared.rng import keyed_generator
 from forensics.validate.truth import match_truth
 
 NOMINAL = 0.95
@@ -151,6 +156,51 @@ def image_epoch(device: Device, time: float, k: int, pool: list[np.ndarray], rng
     mask = MaskSpec("all") if settings.mask == "all" else MaskSpec(settings.mask)
     return detect(acc.result(), q=settings.q, sigma=settings.sigma, mask=mask, threads=1,
                   full_scale=2.0**settings.bit_depth - 1, stuck_tolerance=settings.stuck_tolerance)
+
+
+# =========================================================================== work items
+@dataclass(frozen=True)
+class Trial:
+    """One trial as a work item: its index and the run's seed — all it draws from (its keyed streams)."""
+
+    index: int
+    seed: int | np.random.SeedSequence  #: the run's ``rng`` as :func:`stream_root` gives it
+
+
+@dataclass
+class TrialSetup:
+    """What every trial of a run shares (the work items' shared data, shipped once per worker)."""
+
+    settings: ValidationSettings
+    pool: list[np.ndarray]
+    within_fraction: float = 0.25  #: dating: share of set-dating queries inside the reference span
+
+
+def stream_root(rng: RngLike) -> int | np.random.SeedSequence:
+    """``rng`` in a form a work item carries: an integer seed as it is, a Generator as its seed sequence.
+
+    :func:`~forensics._shared.rng.keyed_generator` gives the same sub-streams from either, and neither uses
+    the generator's state, so a trial's streams do not depend on what ran before it or where."""
+    if isinstance(rng, (int, np.integer)) and not isinstance(rng, (bool, np.bool_)):
+        return int(rng)
+    if isinstance(rng, np.random.SeedSequence):
+        return rng
+    return as_generator(rng).bit_generator.seed_seq
+
+
+def run_defects_trial(setup: TrialSetup, trial: Trial) -> dict[str, Any]:
+    """Work item of :func:`defects_records`: defects trial ``trial.index``, from its stream ``(2, index)``."""
+    return defects_trial(setup.settings, setup.pool, keyed_generator(trial.seed, 2, trial.index))
+
+
+def run_dating_trial(setup: TrialSetup, trial: Trial) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Work item of :func:`dating_records`: the set-dating trial (stream ``(4, index)``) and the single-image
+    trial (stream ``(5, index)``) of ``trial.index``."""
+    i = trial.index
+    set_rng = keyed_generator(trial.seed, 4, i)
+    within = set_rng.random() < setup.within_fraction
+    return (set_dating_trial(setup.settings, setup.pool, set_rng, within=within),
+            image_dating_trial(setup.settings, setup.pool, keyed_generator(trial.seed, 5, i)))
 
 
 # =========================================================================== summaries
@@ -270,21 +320,26 @@ def defects_trial(settings: ValidationSettings, pool: list[np.ndarray], rng: Rng
 
 
 def validate_defects(settings: ValidationSettings, trials: int, rng: RngLike = 0,
-                     progress: Progress = no_progress) -> ValidationResult:
+                     progress: Progress = no_progress, executor: Executor | None = None) -> ValidationResult:
     """Run ``trials`` detection-and-growth trials (see the module docstring).
 
     ``rng`` (Generator or int seed) keys the streams: the scene pool draws from sub-stream ``(1,)``, trial
     ``i`` from ``(2, i)`` (:func:`~forensics._shared.rng.keyed_generator`); the result records
-    :func:`~forensics._shared.rng.seed_record` of it.
+    :func:`~forensics._shared.rng.seed_record` of it.  ``executor`` runs the trials (None: in this process);
+    the result is the same on every backend.
     """
-    records = defects_records(settings, rng, progress(range(trials), total=trials, desc="validate defects"))
+    records = defects_records(settings, rng, range(trials), executor=executor, progress=progress)
     return summarise_defects(settings, records, seed_record(rng))
 
 
-def defects_records(settings: ValidationSettings, rng: RngLike, indices: Iterable[int]) -> list[dict[str, Any]]:
-    """The records of the defects trials ``indices`` of the run ``rng`` (any subset, e.g. one process's share)."""
-    pool = scene_pool(settings, keyed_generator(rng, 1))
-    return [defects_trial(settings, pool, keyed_generator(rng, 2, i)) for i in indices]
+def defects_records(settings: ValidationSettings, rng: RngLike, indices: Iterable[int],
+                    executor: Executor | None = None, progress: Progress = no_progress) -> list[dict[str, Any]]:
+    """The records of the defects trials ``indices`` of the run ``rng`` (any subset), in the order given; one
+    work item per trial on ``executor`` (None: in this process)."""
+    setup = TrialSetup(settings, scene_pool(settings, keyed_generator(rng, 1)))
+    items = [Trial(int(i), stream_root(rng)) for i in indices]
+    return list(resolve(executor).map(run_defects_trial, items, shared=setup, progress=progress,
+                                      desc="validate defects"))
 
 
 def summarise_defects(settings: ValidationSettings, records: list[dict[str, Any]], seed: Any = 0) -> ValidationResult:
@@ -386,28 +441,29 @@ def image_dating_trial(settings: ValidationSettings, pool: list[np.ndarray], rng
 
 
 def validate_dating(settings: ValidationSettings, trials: int, rng: RngLike = 0, progress: Progress = no_progress,
-                    within_fraction: float = 0.25) -> ValidationResult:
+                    within_fraction: float = 0.25, executor: Executor | None = None) -> ValidationResult:
     """Run ``trials`` set-dating trials and ``trials`` single-image trials.
 
     ``rng`` (Generator or int seed) keys the streams: the scene pool draws from sub-stream ``(3,)``, set
     trial ``i`` from ``(4, i)`` and image trial ``i`` from ``(5, i)``
-    (:func:`~forensics._shared.rng.keyed_generator`).
+    (:func:`~forensics._shared.rng.keyed_generator`).  ``executor`` runs the trials (None: in this process);
+    the result is the same on every backend.
     """
-    sets, images = dating_records(settings, rng, progress(range(trials), total=trials, desc="validate dating"),
-                                  within_fraction)
+    sets, images = dating_records(settings, rng, range(trials), within_fraction, executor=executor,
+                                  progress=progress)
     return summarise_dating(settings, sets, images, seed_record(rng))
 
 
 def dating_records(settings: ValidationSettings, rng: RngLike, indices: Iterable[int],
-                   within_fraction: float = 0.25) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """The set- and image-dating records of the trials ``indices`` of the run ``rng`` (any subset)."""
-    pool = scene_pool(settings, keyed_generator(rng, 3))
-    sets, images = [], []
-    for i in indices:
-        trial_rng = keyed_generator(rng, 4, i)
-        sets.append(set_dating_trial(settings, pool, trial_rng, within=trial_rng.random() < within_fraction))
-        images.append(image_dating_trial(settings, pool, keyed_generator(rng, 5, i)))
-    return sets, images
+                   within_fraction: float = 0.25, executor: Executor | None = None,
+                   progress: Progress = no_progress) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The set- and image-dating records of the trials ``indices`` of the run ``rng`` (any subset), in the
+    order given; one work item per trial on ``executor`` (None: in this process)."""
+    setup = TrialSetup(settings, scene_pool(settings, keyed_generator(rng, 3)), within_fraction)
+    items = [Trial(int(i), stream_root(rng)) for i in indices]
+    pairs = list(resolve(executor).map(run_dating_trial, items, shared=setup, progress=progress,
+                                       desc="validate dating"))
+    return [p[0] for p in pairs], [p[1] for p in pairs]
 
 
 def summarise_dating(settings: ValidationSettings, sets: list[dict[str, Any]], images: list[dict[str, Any]],
