@@ -13,6 +13,11 @@ Usage::
     .venv/bin/python benchmarks/sweep_check.py --only gain --seeds 10
     .venv/bin/python benchmarks/sweep_check.py --conventions project,camera,8bit,14bit --seeds 3 --null 5
     .venv/bin/python benchmarks/sweep_check.py --combo prnu,dark_current --combo gain,accelerating_growth
+    .venv/bin/python benchmarks/sweep_check.py --conventions project,camera,8bit,14bit --scheduler tcp://HEAD:8786
+
+Runs go through the execution layer (``--workers`` local processes, or a Dask cluster with ``--scheduler``);
+with ``--json OUT`` every finished run is kept in ``OUT.partial/`` and a stopped sweep, started again with the
+same arguments, resumes from the runs it finished.
 
 With ``--combo A,B[,C]`` (repeatable; ``none`` for nothing hidden) the sweep hides several effects at once and
 runs forward selection (``forensics model check --auto``) instead: per combination, the seeds where it added
@@ -34,7 +39,6 @@ import os
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -129,13 +133,14 @@ def run_auto(job: tuple[tuple[str, ...], int]) -> dict:
             "rejected": [a.reason for a in sel.rejected]}
 
 
-def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_out: str | None) -> int:
+def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_out: str | None,
+                scheduler: str | None = None) -> int:
     """The combination sweep through forward selection: one Markdown table and the failing runs."""
     import numpy as np
 
     jobs = [(c, s) for c in combos for s in range(1, seeds + 1)]
     started = time.perf_counter()
-    runs = run_logged(run_auto, jobs, workers, json_out)
+    runs = run_logged(run_auto, jobs, workers, json_out, scheduler)
     elapsed = time.perf_counter() - started
     print(f"# Forward selection (--auto): {len(combos)} combination(s) × {seeds} seeds "
           f"({elapsed:.0f} s on {workers} worker(s))\n")
@@ -168,21 +173,20 @@ def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_ou
     return 0
 
 
-def run_logged(fn, jobs: list, workers: int, json_out: str | None) -> list[dict]:
-    """``fn`` over ``jobs`` in ``workers`` processes, in job order; each finished run is also appended at once to
-    ``<json_out>.partial.jsonl`` (a sweep takes hours: a stopped one keeps what it finished)."""
-    log = Path(str(json_out) + ".partial.jsonl") if json_out else None
-    if log:
-        log.write_text("")
-    runs: list = [None] * len(jobs)
-    with ProcessPoolExecutor(workers) as pool:
-        futures = {pool.submit(fn, job): k for k, job in enumerate(jobs)}
-        for fut in as_completed(futures):
-            runs[futures[fut]] = fut.result()
-            if log:
-                with log.open("a") as fh:
-                    fh.write(json.dumps(runs[futures[fut]], default=float) + "\n")
-    return runs
+def run_logged(fn, jobs: list, workers: int, json_out: str | None, scheduler: str | None = None) -> list[dict]:
+    """``fn`` over ``jobs`` on the execution layer, in job order.  With ``json_out`` each finished run is kept in
+    ``<json_out>.partial/`` (a sweep takes hours: a stopped one resumes from what it finished)."""
+    import contextlib
+
+    from forensics._shared.parallel import open_executor, resumable_checkpoint
+
+    config = {"sweep": fn.__name__, "jobs": [list(map(str, j)) for j in jobs]}
+    partial = Path(str(json_out) + ".partial") if json_out else None
+    with open_executor(workers, scheduler) as ex, \
+            (resumable_checkpoint(partial, config) if partial else contextlib.nullcontext()) as checkpoint:
+        if ex.backend == "dask":
+            print(f"Dask dashboard: {ex.info().dashboard}", file=sys.stderr)
+        return list(ex.map(fn, jobs, checkpoint=checkpoint))
 
 
 def run_guarded(job: tuple[str, int, str]) -> dict:
@@ -260,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--null", type=int, default=20, help="seeds with nothing hidden (default 20)")
     parser.add_argument("--only", action="append", help="only this candidate (repeatable)")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    parser.add_argument("--scheduler", default=None, help="a Dask scheduler address (default: local processes)")
     parser.add_argument("--no-extra", action="store_true", help="only the seven candidates the issue names "
                         "(default: also the further built-in candidates, e.g. dsnu)")
     parser.add_argument("--json", help="also write every run's numbers to this file")
@@ -272,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.combo:
         combos = [tuple(x.strip() for x in c.split(",") if x.strip()) for c in args.combo]
-        return main_combos(combos, args.seeds, args.workers, args.json)
+        return main_combos(combos, args.seeds, args.workers, args.json, args.scheduler)
     effects = args.only or list(CANDIDATES) + ([] if args.no_extra else list(EXTRA))
     convs = [c.strip() for c in args.conventions.split(",") if c.strip()] if args.conventions else ["project"]
     for c in convs:
@@ -280,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     jobs = [(e, s, c) for c in convs for e in effects for s in range(1, args.seeds + 1)] + \
         [("none", s, c) for c in convs for s in range(1, args.null + 1)]
     started = time.perf_counter()
-    runs = run_logged(run_guarded, jobs, args.workers, args.json)
+    runs = run_logged(run_guarded, jobs, args.workers, args.json, args.scheduler)
     elapsed = time.perf_counter() - started
     header = (f"# Model-check sweep: {len(effects)} candidate(s) × {args.seeds} seeds + {args.null} null seeds "
               f"({elapsed:.0f} s on {args.workers} worker(s))")

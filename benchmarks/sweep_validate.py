@@ -3,30 +3,21 @@
     .venv/bin/python benchmarks/sweep_validate.py --trials 400 --seed 2024 --jobs 2
 
 Runs exactly the trials of ``forensics validate defects`` and ``forensics
-validate dating`` (same per-trial seeds), split over worker processes, and
-prints the result tables as Markdown.
+validate dating`` (same per-trial seeds) on the execution layer (local worker
+processes, or a Dask cluster with ``--scheduler``), and prints the result
+tables as Markdown.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from forensics._shared.parallel import open_executor  # noqa: E402
 from forensics.validate import trials as V  # noqa: E402
-
-
-def _defects(args):
-    settings, seed, indices = args
-    return V.defects_records(settings, seed, indices)
-
-
-def _dating(args):
-    settings, seed, indices = args
-    return V.dating_records(settings, seed, indices)
 
 
 def markdown(result: V.ValidationResult) -> str:
@@ -40,25 +31,21 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=400)
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--sensor", default="F")
-    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--jobs", type=int, default=2, help="local worker processes (default 2)")
+    ap.add_argument("--scheduler", default=None, help="a Dask scheduler address instead of local processes")
     ap.add_argument("--scenes", default="smooth")
     ap.add_argument("--what", choices=["defects", "dating", "both"], default="both")
     args = ap.parse_args()
     settings = V.ValidationSettings(sensor=args.sensor, scenes=args.scenes)
-    chunks = [list(range(j, args.trials, args.jobs)) for j in range(args.jobs)]
-    with ProcessPoolExecutor(args.jobs) as ex:
-        defects = dating = None
+    defects = dating = None
+    with open_executor(args.jobs, args.scheduler) as ex:
         if args.what in ("defects", "both"):
             t = time.perf_counter()
-            parts = list(ex.map(_defects, [(settings, args.seed, c) for c in chunks]))
-            records = [r for p in parts for r in p]
-            defects = V.summarise_defects(settings, records, args.seed)
+            defects = V.validate_defects(settings, args.trials, args.seed, executor=ex)
             t_def = time.perf_counter() - t
         if args.what in ("dating", "both"):
             t = time.perf_counter()
-            parts = list(ex.map(_dating, [(settings, args.seed, c) for c in chunks]))
-            dating = V.summarise_dating(settings, [r for p in parts for r in p[0]], [r for p in parts for r in p[1]],
-                                        args.seed)
+            dating = V.validate_dating(settings, args.trials, args.seed, executor=ex)
             t_dat = time.perf_counter() - t
     s = settings
     print(f"settings: sensor {s.sensor}, {s.bit_depth}-bit {s.shape[1]}x{s.shape[0]}, read noise {s.read_noise:g} DN, "

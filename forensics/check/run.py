@@ -226,7 +226,8 @@ def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effec
     if isinstance(data, Measurements):
         if region is not None:
             raise UsageError("a region is chosen when the frames are read (load_measurements), not afterwards")
-        meas, source = data, data.root
+        # the frames were accepted when the measurements were read; only their metadata is read again here
+        meas, source = data, open_dataset(data.root, allow_outside=True)
     else:
         # opened once, as given (a Dataset keeps how it was opened, e.g. with files outside its folder)
         source = data if isinstance(data, Dataset) else open_dataset(data)
