@@ -47,9 +47,10 @@ def dresden_or_skip() -> Path:
 @pytest.fixture(scope="session")
 def dask_cluster():
     """A ``dask.distributed.LocalCluster`` with two single-threaded worker processes (one per test session)."""
-    distributed = pytest.importorskip("distributed", reason="dask[distributed] is a test dependency")
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                       dashboard_address=":0", silence_logs=40)
+    pytest.importorskip("distributed", reason="dask[distributed] is a test dependency")
+    from forensics._shared.parallel import start_local_cluster
+
+    cluster = start_local_cluster(2)
     try:
         yield cluster
     finally:

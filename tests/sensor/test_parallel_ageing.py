@@ -78,10 +78,10 @@ class _KillAfter:
 
 
 def test_a_killed_dask_worker_costs_only_its_tasks(source, reference, tmp_path):
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                                  silence_logs=40) as cluster, \
-            Executor("dask", scheduler=cluster.scheduler_address, window=4) as ex:
+    pytest.importorskip("distributed")
+    from forensics._shared.parallel import start_local_cluster
+
+    with start_local_cluster(2) as cluster, Executor("dask", scheduler=cluster.scheduler_address, window=4) as ex:
         pids = sorted(set(ex.client.run(os.getpid).values()))
         assert len(pids) == 2
         killed = []
