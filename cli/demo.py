@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from forensics.cli.common import command_parser, emit, info, progress_for
+from forensics.cli.common import add_execution_options, command_parser, emit, executor_for, info, progress_for
 
 
 def register(sub) -> None:
@@ -18,6 +18,7 @@ def register(sub) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--force", action="store_true", default=True,
                         help="replace an existing report folder (default: yes, the demo's own output)")
+    add_execution_options(parser)
     parser.set_defaults(handler=run)
 
 
@@ -25,7 +26,9 @@ def run(args: argparse.Namespace) -> int:
     from forensics.demo import run_demo
 
     info(args, f"forensics demo: writing {args.out}/ …")
-    result = run_demo(args.out, rng=args.seed, force=args.force, progress=progress_for(args), only=args.only)
+    with executor_for(args) as executor:
+        result = run_demo(args.out, rng=args.seed, force=args.force, progress=progress_for(args), only=args.only,
+                          executor=executor)
 
     def summary() -> str:
         lines = []

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import Progress
 from forensics._shared.rng import RngLike
 from forensics.io.dataset import open_dataset
@@ -33,7 +34,7 @@ def poisson_bands(rates: dict[str, float], megapixels: float, max_age: float, n:
     return out
 
 
-def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
+def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | None = None) -> DemoSection:
     """Age 12 scenes with sensor H over 96 years and compare the counts with the Poisson model.
 
     ``rng`` (Generator or int seed) draws the scenes, then the device and the frames' noise.
@@ -42,7 +43,7 @@ def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
     ages = parse_years("0:96:8")
     model = preset(SENSOR, SIZE, bit_depth=8)
     result = age_dataset(scenes, workdir / "aged", model, ages, rng, start_year=START, sensor_name=SENSOR,
-                         progress=progress)
+                         progress=progress, executor=executor)
     catalogue = read_catalogue(workdir / "aged" / "defects.csv")
     lam_ps, lam_s = model.effects[0].rate_partial, model.effects[0].rate_stuck
     mp = model.megapixels

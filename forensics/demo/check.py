@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import Progress
 from forensics._shared.rng import RngLike
 from forensics.check import Evidence, base_model, load_measurements, run_check
@@ -15,7 +16,7 @@ TITLE = "Model against measurement: find the missing effect, add it, watch the e
 HIDDEN = "dark_current"
 
 
-def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
+def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | None = None) -> DemoSection:
     from forensics.fixtures.hidden import HIDDEN as STRENGTHS
     from forensics.fixtures.hidden import make_hidden
 

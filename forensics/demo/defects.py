@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import Progress
 from forensics._shared.rng import RngLike
 from forensics.defects.dating import date_dataset
@@ -27,7 +28,7 @@ QUERY_AGE = 14.0
 START = 2000.0
 
 
-def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
+def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | None = None) -> DemoSection:
     """Simulate a device at three reference ages and a query age; detect, estimate growth, date the query.
 
     ``rng`` (Generator or int seed) draws the scenes, then the device and the frames' noise.
@@ -35,14 +36,15 @@ def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
     scenes = make_scenes(workdir / "scenes", IMAGES, SIZE, rng, bit_depth=16, progress=progress)
     model = preset(SENSOR, SIZE, bit_depth=16, rate_scale=RATE_SCALE)
     ages = list(REFERENCE_AGES) + [QUERY_AGE]
-    age_dataset(scenes, workdir / "aged", model, ages, rng, start_year=START, sensor_name=SENSOR, progress=progress)
+    age_dataset(scenes, workdir / "aged", model, ages, rng, start_year=START, sensor_name=SENSOR, progress=progress,
+                executor=executor)
     truth = read_catalogue(workdir / "aged" / "defects.csv")
     sets = [open_dataset(workdir / "aged" / f"year_{int(a):03d}") for a in ages]
     mask = MaskSpec("centre", 0.3)
-    epochs = epochs_from_datasets(sets[:-1], mask=mask, progress=progress)
+    epochs = epochs_from_datasets(sets[:-1], mask=mask, progress=progress, executor=executor)
     growth = estimate_growth(epochs)
     gmodel = growth.model()
-    dated = date_dataset(gmodel, sets[-1], progress=progress)
+    dated = date_dataset(gmodel, sets[-1], progress=progress, executor=executor)
 
     # truth: the rate of partially stuck defects above the threshold used, λ·(1 − (τ − centre)/a_ps)
     g = model.effect("growth")

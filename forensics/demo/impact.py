@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import Progress
 from forensics._shared.rng import RngLike
 from forensics.impact.experiment import parse_sensors, run_impact
@@ -21,13 +22,13 @@ AGES = [0.0, 48.0, 96.0]
 MATCHER = "masek"
 
 
-def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
+def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | None = None) -> DemoSection:
     """Age a synthetic iris set with sensors A and H × 100 and measure Masek's EER against age."""
     simulate_irises(workdir / "irises", CLASSES, SAMPLES, rng, progress=progress)
     source = open_dataset(workdir / "irises")
     sensors = parse_sensors(SENSORS, source.shape()[:2], 8)
     result = run_impact(source, sensors, AGES, load_matchers([MATCHER]), rng, protocols=["same-age", "enrol-0"],
-                        n_boot=500, progress=progress)
+                        n_boot=500, progress=progress, executor=executor)
     rep = Report(TITLE)
     rep.text(f"{CLASSES} synthetic eyes × {SAMPLES} near-infrared images (320×240, 8-bit) are aged by two virtual "
              "sensors: A (the paper's Irisguard H100) and H × 100 (a hundred times the rates of H, the paper's most "

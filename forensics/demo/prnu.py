@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import Progress
 from forensics._shared.rng import RngLike, as_generator, spawn
 from forensics.prnu.samedevice import ImageSet, SameDeviceResult, same_device
@@ -106,7 +107,7 @@ def _line(label: str, r: SameDeviceResult) -> str:
     return text
 
 
-def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection:
+def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | None = None) -> DemoSection:
     """Run the three comparisons (about 15 s on 2 cores) and build the report section.
 
     ``rng`` (Generator or int seed) realises the devices, seeds the image sets and draws every selection

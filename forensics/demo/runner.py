@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, seed_record
 from forensics.report.demo import demo_page
@@ -46,8 +47,11 @@ def available_sections() -> list[str]:
 
 
 def run_demo(out: str | os.PathLike, rng: RngLike = 0, force: bool = False, progress: Progress = no_progress,
-             only: list[str] | None = None) -> DemoResult:
+             only: list[str] | None = None, executor: Executor | None = None) -> DemoResult:
     """Run every available section (or those in ``only``) and write ``out/index.html`` (atomically).
+
+    ``executor`` runs the sections' batch work (ageing, defect statistics, the recognition experiment;
+    default: in this process); the page is the same whichever runs it.
 
     ``rng`` (Generator or int seed) is handed to every section as given, so with an integer each section
     draws from ``default_rng(seed)`` of its own, independently of which other sections run.
@@ -64,6 +68,6 @@ def run_demo(out: str | os.PathLike, rng: RngLike = 0, force: bool = False, prog
             module = importlib.import_module(f"{_PACKAGE}.{name}")
             workdir = Path(scratch) / name
             workdir.mkdir()
-            sections.append((name, module.run(workdir, rng, progress)))
+            sections.append((name, module.run(workdir, rng, progress, executor)))
         path = demo_page(sections, seed_record(rng)).write(out, force=force)
     return DemoResult(path, [s for _, s in sections], time.perf_counter() - started)
