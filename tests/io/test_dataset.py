@@ -147,3 +147,17 @@ def test_manifest_paths_leaving_the_folder_are_refused(tmp_path):
     (root / "inner.png").symlink_to(root / "f1.png")
     (root / "manifest.csv").write_text("file\nf0.png\n../set/f1.png\ninner.png\n")
     assert len(open_dataset(root)) == 3
+
+
+def test_cli_refuses_a_manifest_leaving_the_folder_unless_allowed(cli, tmp_path):
+    root = tmp_path / "set"
+    _folder(root, n=2)
+    write_image(tmp_path / "elsewhere.png", np.zeros((8, 10), np.uint8))
+    (root / "manifest.csv").write_text("file\nf0.png\n../elsewhere.png\n")
+    code, out, err = cli("info", root)
+    assert code == 3 and len(err.strip().splitlines()) == 1
+    assert "line 3" in err and "--allow-outside" in err
+    code, out, err = cli("info", root, "--allow-outside")
+    assert code == 0 and "2 images" in out
+    code, out, err = cli("simulate", "age", root, tmp_path / "aged", "--years", "0,1")
+    assert code == 3 and "outside the dataset folder" in err and not (tmp_path / "aged").exists()
