@@ -176,7 +176,7 @@ def resumable_directory(out: str | os.PathLike, config: dict[str, Any], force: b
     ``out`` (replacing it only with ``force``), so the output appears whole or not at all.  After an
     interruption the same call resumes from the finished items; errors in the input remove the working folder.
     """
-    from forensics._shared.atomic import refuse_existing
+    from forensics._shared.atomic import move_directory_into_place, refuse_existing
     from forensics._shared.errors import InputError
 
     out = refuse_existing(out, force)
@@ -191,13 +191,7 @@ def resumable_directory(out: str | os.PathLike, config: dict[str, Any], force: b
     except (InputError, UsageError):
         shutil.rmtree(work, ignore_errors=True)
         raise
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
-        os.replace(out, old)
-        os.replace(work, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(work, out)
+    move_directory_into_place(work, out)
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
