@@ -1,4 +1,5 @@
-"""``forensics fingerprint``: build a PRNU fingerprint from a set of images, match images against it."""
+"""``forensics fingerprint``: build a PRNU fingerprint from a set of images, match images against it, and keep
+fingerprints in a database (``fingerprint db add|list|remove``)."""
 from __future__ import annotations
 
 import argparse
@@ -69,7 +70,63 @@ def register(sub) -> None:
     add_execution_options(match)
     add_output_options(match)
     match.set_defaults(handler=run_match)
+    _register_db(inner)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
+
+
+def _db_output_options(parser: argparse.ArgumentParser) -> None:
+    """``--json`` and ``--quiet`` (a database is changed in place, so there is no --force or --report)."""
+    group = parser.add_argument_group("output")
+    group.add_argument("--json", action="store_true", help="print one JSON object on stdout instead of the summary")
+    group.add_argument("--quiet", action="store_true", help="no notes on stderr")
+
+
+def _register_db(inner: Any) -> None:
+    """``fingerprint db add|list|remove``."""
+    db = inner.add_parser("db", help="a database of device fingerprints: add, list, remove",
+                          description=fill("A fingerprint database is a folder: an SQLite index (index.sqlite) with "
+                                           "one row per device and the fingerprints in fingerprints/.  Any number of "
+                                           "processes may read it while one writes; every change is atomic.", 100),
+                          epilog="example:\n  forensics fingerprint db add cameras/ d70.npz --device 'Nikon D70 #0'\n"
+                                 "  forensics fingerprint db list cameras/",
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = db.add_subparsers(dest="db_command", metavar="WHAT")
+
+    add = command_parser(
+        sub, "add", "add fingerprints to a database (created if missing)",
+        "forensics fingerprint db add cameras/ d70.npz --device 'Nikon D70 #0' --serial 4012345",
+        fill("Adds each fingerprint file (written by 'fingerprint build') to the database DB, all of them or, on any "
+             "error, none.  The device id is --device, else the one the fingerprint's source images name (the "
+             "'device' column of their manifest.csv, else EXIF make, model and body serial).  Make, model and serial "
+             "default to the EXIF of the first source image; the capture-date range comes from the source images.  "
+             "The quality figure is the effective number of images, n × (1 − saturated fraction): higher is better.",
+             100))
+    add.add_argument("database", metavar="DB", help="database folder (created when missing)")
+    add.add_argument("fingerprints", metavar="FP", nargs="+", help="fingerprint file(s) (.npz)")
+    add.add_argument("--device", metavar="ID", help="device id (only with one FP)")
+    add.add_argument("--make", metavar="M", help="camera make (default: from EXIF)")
+    add.add_argument("--model", metavar="M", help="camera model (default: from EXIF)")
+    add.add_argument("--serial", metavar="S", help="body serial number (only with one FP; default: from EXIF)")
+    add.add_argument("--replace", action="store_true", help="replace devices already in the database")
+    _db_output_options(add)
+    add.set_defaults(handler=run_db_add)
+
+    lister = command_parser(sub, "list", "list the devices of a database",
+                            "forensics fingerprint db list cameras/ --json",
+                            "One row per device: id, make, model, serial, region, frame size, images, capture dates "
+                            "and quality (effective number of images; higher is better).  --json gives every field.")
+    lister.add_argument("database", metavar="DB", help="database folder")
+    _db_output_options(lister)
+    lister.set_defaults(handler=run_db_list)
+
+    remove = command_parser(sub, "remove", "remove a device from a database",
+                            "forensics fingerprint db remove cameras/ 'Nikon D70 #0'",
+                            "Deletes the device's index row (one transaction), then its fingerprint file.")
+    remove.add_argument("database", metavar="DB", help="database folder")
+    remove.add_argument("device", metavar="ID", help="device id (as 'db list' shows it)")
+    _db_output_options(remove)
+    remove.set_defaults(handler=run_db_remove)
+    db.set_defaults(handler=lambda args: db.print_help() or 2)
 
 
 def _shift_range(text: str) -> int | None:
@@ -194,4 +251,115 @@ def _match_table(payload: dict[str, Any]) -> str:
         lines.append("no decisions: NCC has no universal threshold; give --threshold (or use --metric pce)")
     else:
         lines.append(f"{payload['n_match']} of {payload['n_images']} images reach the threshold {thr:g}")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- fingerprint db
+
+
+def run_db_add(args: argparse.Namespace) -> int:
+    from forensics._shared.errors import InputError, UsageError
+
+    files = [Path(f) for f in args.fingerprints]
+    if len(files) > 1 and (args.device is not None or args.serial is not None):
+        raise UsageError("--device and --serial name one device: give one FP file with them, or none to take "
+                         "each device id from its fingerprint's source images")
+    if len({f.resolve() for f in files}) < len(files):
+        raise UsageError("the same FP file is given twice; give each fingerprint once")
+    for f in files:  # before anything is written
+        if not f.is_file():
+            raise InputError(f"{f}: no such fingerprint file; build one with 'forensics fingerprint build'")
+    folder = Path(args.database)
+    entries, before, total = _add_to_database(args, folder, files)
+    replaced = [e.device_id for e in entries if e.device_id in before]
+
+    def summary() -> str:
+        lines = [f"{'replaced' if e.device_id in replaced else 'added'} {e.device_id!r} "
+                 f"({e.n_images} images, region {e.region}, {e.width}×{e.height}) ← {f}"
+                 for e, f in zip(entries, files)]
+        lines.append(f"{folder}: {total} device(s); next: forensics fingerprint db list {folder}")
+        return "\n".join(lines)
+
+    emit(args, summary, lambda: {"database": str(folder), "added": [e.to_dict() for e in entries],
+                                 "replaced": replaced, "n_devices": total})
+    return 0
+
+
+def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) -> tuple[list[Any], set[str], int]:
+    """Add the files in one transaction; a new database is made beside ``folder`` and renamed into place
+    complete, so a failed first add leaves no empty database behind.
+
+    Returns the entries added, the device ids present before, and the number of devices after.
+    """
+    import os
+    import shutil
+    import tempfile
+
+    from forensics.prnu.database import FingerprintDatabase
+
+    def add(db: FingerprintDatabase) -> tuple[list[Any], set[str], int]:
+        before = {e.device_id for e in db.entries()}
+        entries = db.add_many(files, [args.device] * len(files), make=args.make, model=args.model,
+                              serial=args.serial, replace=args.replace)
+        return entries, before, len(db)
+
+    if folder.exists():
+        return add(FingerprintDatabase(folder, create=True))  # an empty folder becomes a database
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
+    try:
+        result = add(FingerprintDatabase(stage, create=True))
+        try:
+            os.rename(stage, folder)
+        except OSError:
+            if not folder.exists():
+                raise
+            return add(FingerprintDatabase(folder, create=True))  # another process made it meanwhile: add there
+        return result
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def run_db_list(args: argparse.Namespace) -> int:
+    from forensics.prnu.database import FingerprintDatabase
+
+    db = FingerprintDatabase(args.database)
+    entries = db.entries()
+    emit(args, lambda: _db_table(str(db.folder), entries),
+         lambda: {"database": str(db.folder), "n_devices": len(entries), "entries": [e.to_dict() for e in entries]})
+    return 0
+
+
+def run_db_remove(args: argparse.Namespace) -> int:
+    from forensics.prnu.database import FingerprintDatabase
+
+    db = FingerprintDatabase(args.database)
+    entry = db.get(args.device)
+    db.remove(args.device)
+    left = len(db)
+    emit(args, f"removed {entry.device_id!r} from {db.folder} ({left} device(s) left)",
+         lambda: {"database": str(db.folder), "removed": entry.to_dict(), "n_devices": left})
+    return 0
+
+
+def _fmt_year(year: float | None) -> str:
+    if year is None:
+        return "?"
+    from forensics.io.dataset import from_decimal_year
+
+    return from_decimal_year(year).date().isoformat()
+
+
+def _db_table(folder: str, entries: list[Any]) -> str:
+    if not entries:
+        return f"{folder}: no devices; add one with 'forensics fingerprint db add {folder} FP.npz'"
+    rows = [["device", "make", "model", "serial", "region", "size", "images", "captured", "quality"]]
+    for e in entries:
+        dates = "" if e.first_captured is None else f"{_fmt_year(e.first_captured)}–{_fmt_year(e.last_captured)}"
+        rows.append([e.device_id, e.make or "", e.model or "", e.serial or "", e.region, f"{e.width}×{e.height}",
+                     str(e.n_images), dates, f"{e.quality:.1f}"])
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(cell.rjust(w) if i in (6, 8) else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+             .rstrip() for r in rows]
+    lines.append(f"{len(entries)} device(s) in {folder}; quality = effective number of images (higher is better)")
     return "\n".join(lines)

@@ -1,7 +1,7 @@
 """Photo-response non-uniformity (PRNU): noise residuals (wavelet and median), streamed maximum-likelihood
-fingerprints, matching (NCC, PCE with false-alarm probabilities), the reference paper's same-device
-protocol (EER with a bootstrap interval) and its fingerprint-ageing table (table 2).  No figures: those
-are in :mod:`forensics.report.prnu`.
+fingerprints, a database of device fingerprints, matching (NCC, PCE with false-alarm probabilities), the
+reference paper's same-device protocol (EER with a bootstrap interval) and its fingerprint-ageing table
+(table 2).  No figures: those are in :mod:`forensics.report.prnu`.
 """
 import lazy_loader as _lazy
 
@@ -14,6 +14,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "AgeingTable", "MedianFingerprintBuilder", "PairStatistic", "ageing_table",
             "build_ageing_fingerprints",
         ],
+        "database": ["DeviceEntry", "FingerprintDatabase"],
         "fingerprint": ["Fingerprint", "FingerprintBuilder", "FingerprintJob", "ImageSet", "Region", "build_fingerprint",
                         "build_fingerprints", "parse_region"],
         "match": [
