@@ -12,7 +12,7 @@ from forensics._shared.errors import InputError, UsageError
 from forensics.cli.common import EXIT_BAD_INPUT, EXIT_USAGE
 
 # Each module defines register(subparsers); order is the order in --help.
-COMMAND_MODULES = ["demo", "simulate", "info", "fingerprint", "same_device", "defects", "date", "validate", "model", "impact"]
+COMMAND_MODULES = ["demo", "simulate", "info", "fingerprint", "same_device", "identify", "cluster", "defects", "date", "validate", "model", "impact"]
 
 
 def build_parser() -> argparse.ArgumentParser:

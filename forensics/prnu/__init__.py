@@ -14,9 +14,17 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "AgeingTable", "MedianFingerprintBuilder", "PairStatistic", "ageing_table",
             "build_ageing_fingerprints",
         ],
+        "cluster": [
+            "ClusterNull", "ClusterResult", "DeviceCluster", "ImageAssignment", "SizeGroup", "adjusted_rand_index",
+            "cluster_images", "comparison_residual", "completeness", "purity", "write_cluster_dataset",
+        ],
         "database": ["DeviceEntry", "FingerprintDatabase"],
         "fingerprint": ["Fingerprint", "FingerprintBuilder", "FingerprintJob", "ImageSet", "Region", "build_fingerprint",
                         "build_fingerprints", "parse_region"],
+        "identify": [
+            "IdentificationResult", "Prescreen", "QueryIdentification", "ScaleSearch", "identify",
+            "prescreen_miss_rate",
+        ],
         "match": [
             "PCE_THRESHOLD", "QUERY_SIGMA", "MatchScore", "PceResult", "Query", "SetMatch", "match_set", "ncc",
             "pce", "prepare_query", "score_matrix", "score_pair", "score_query",
