@@ -121,7 +121,7 @@ def summary(result: Any, db: str) -> str:
             f"{q.pce_threshold:.1f}" if math.isfinite(q.pce_threshold) else "—",
             q.decision,
             f"{second.device_id} ({second.pce:.1f})" if second else "—",
-            _geometry(best) if best else (q.note or ""),
+            best.geometry() if best else (q.note or ""),
         ])
     header = ["file", "best device", "PCE", "p_FA", "needed", "decision", "runner-up (PCE)", "geometry"]
     widths = [max(len(header[i]), *(len(r[i]) for r in rows)) if rows else len(header[i]) for i in range(len(header))]
@@ -138,15 +138,6 @@ def summary(result: Any, db: str) -> str:
     return "\n".join(lines)
 
 
-def _geometry(c: Any) -> str:
-    parts = []
-    if c.rotation:
-        parts.append(f"rot {90 * c.rotation}°")
-    if c.method == "scale":
-        parts.append(f"scale {c.scale:.4g}")
-    if c.method != "aligned":
-        parts.append(f"at ({c.offset[0]}, {c.offset[1]})")
-    return ", ".join(parts) or "aligned"
 
 
 def _command(args: argparse.Namespace) -> str:

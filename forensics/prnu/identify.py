@@ -389,6 +389,17 @@ class Candidate:
         """The normalised peak ``sign·√|PCE|``."""
         return math.copysign(math.sqrt(abs(self.pce)), self.pce)
 
+    def geometry(self) -> str:
+        """Where the query matched, for tables: ``'aligned'`` or e.g. ``'rot 90°, scale 0.7, at (12, 40)'``."""
+        parts = []
+        if self.rotation:
+            parts.append(f"rot {90 * self.rotation}°")
+        if self.method == "scale":
+            parts.append(f"scale {self.scale:.4g}")
+        if self.method != "aligned":
+            parts.append(f"at ({self.offset[0]}, {self.offset[1]})")
+        return ", ".join(parts) or "aligned"
+
     def to_dict(self) -> dict[str, Any]:
         return {"device_id": self.device_id, "pce": self.pce, "p_fa": self.p_fa, "log10_p_fa": self.log10_p_fa,
                 "ncc": self.ncc, "rotation": self.rotation, "scale": self.scale, "offset": list(self.offset),

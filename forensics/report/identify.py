@@ -45,17 +45,7 @@ def _p_text(q: QueryIdentification) -> str:
 
 
 def _geometry(q: QueryIdentification) -> str:
-    c = q.best
-    if c is None:
-        return q.note or ""
-    parts = [c.method]
-    if c.rotation:
-        parts.append(f"{90 * c.rotation}°")
-    if c.method == "scale":
-        parts.append(f"scale {c.scale:.4g}")
-    if c.method != "aligned":
-        parts.append(f"offset ({c.offset[0]}, {c.offset[1]})")
-    return ", ".join(parts)
+    return q.best.geometry() if q.best is not None else (q.note or "")
 
 
 def add_identification(result: IdentificationResult, rep: Report, *, prefix: str = "") -> None:
