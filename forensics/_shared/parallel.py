@@ -191,7 +191,16 @@ def resumable_directory(out: str | os.PathLike, config: dict[str, Any], force: b
     except (InputError, UsageError):
         shutil.rmtree(work, ignore_errors=True)
         raise
+    _sweep_partial_files(work)
     move_directory_into_place(work, out)
+
+
+def _sweep_partial_files(folder: Path) -> None:
+    """Remove the temporary files of writes that never finished (``.NAME.XXXX.part…``, left by a worker killed
+    mid-write; the item was run again and wrote its file whole), so none reaches the finished output."""
+    for path in folder.rglob(".*.part*"):
+        if path.is_file():
+            path.unlink(missing_ok=True)
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -95,6 +95,21 @@ def test_a_killed_dask_worker_costs_only_its_tasks(source, reference, tmp_path):
     _assert_same(_contents(tmp_path / "k"), reference)
 
 
+def test_files_of_an_unfinished_write_never_reach_the_output(source, reference, tmp_path):
+    out = tmp_path / "aged"
+
+    def interrupt() -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _age(source, out, progress=_KillAfter(3, interrupt))
+    # What a worker killed while writing leaves behind (atomic writes' temporary sibling).
+    stray = tmp_path / ".aged.partial" / "year_010" / ".scene_0007.ab12cd34.part.png"
+    stray.write_bytes(b"half an image")
+    _age(source, out)
+    _assert_same(_contents(out), reference)  # every file compared, hidden ones included
+
+
 @pytest.mark.parametrize("backend", ["in-process", "processes"])
 def test_an_interrupted_run_resumes_to_the_identical_result(source, reference, tmp_path, backend):
     out = tmp_path / "aged"
