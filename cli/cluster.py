@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import shutil
 import sys
 import tempfile
@@ -11,6 +10,7 @@ from textwrap import fill
 from typing import Any
 
 from forensics.cli.common import (
+    probability,
     add_execution_options,
     add_input_options,
     add_output_options,
@@ -40,7 +40,7 @@ def register(sub: Any) -> None:
     parser.add_argument("set", metavar="SET", help="dataset folder of the images to group (manifest.csv optional)")
     parser.add_argument("-o", "--output", metavar="OUT", required=True,
                         help="dataset folder to write: OUT/<device>/ images, OUT/manifest.csv, OUT/clusters.json")
-    parser.add_argument("--pfa", type=_probability, default=1e-3, metavar="P",
+    parser.add_argument("--pfa", type=probability, default=1e-3, metavar="P",
                         help="probability that any image is put with another camera's images (default 1e-3)")
     parser.add_argument("--crop", type=int, default=1024, metavar="N",
                         help="side of the centred square compared (default 1024; at most the short side, rounded "
@@ -51,16 +51,6 @@ def register(sub: Any) -> None:
     add_execution_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
-
-
-def _probability(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0 < value < 1:
-        raise argparse.ArgumentTypeError(f"--pfa '{text}': give a probability between 0 and 1, e.g. 1e-3")
-    return value
 
 
 def _captured(frame: Any) -> float | None:

@@ -41,6 +41,19 @@ def add_execution_options(parser: argparse.ArgumentParser) -> None:
                             "cluster on this machine (default: $FORENSICS_SCHEDULER, else local processes)")
 
 
+def probability(text: str) -> float:
+    """argparse type of ``--pfa``: a probability strictly between 0 and 1."""
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"--pfa '{text}': give a probability between 0 and 1, e.g. 1e-3")
+    return value
+
+
 def add_input_options(parser: argparse.ArgumentParser) -> None:
     """Add ``--allow-outside`` (manifest rows may name files outside the dataset folder)."""
     parser.add_argument("--allow-outside", action="store_true",

@@ -8,6 +8,7 @@ from textwrap import fill
 from typing import Any
 
 from forensics.cli.common import (
+    probability,
     add_execution_options,
     add_input_options,
     add_output_options,
@@ -36,7 +37,7 @@ def register(sub) -> None:
     parser.add_argument("set", metavar="SET", help="dataset folder of the images to identify")
     parser.add_argument("--db", required=True, metavar="DB", help="fingerprint database folder ('fingerprint db add')")
     parser.add_argument("--top", type=int, default=3, metavar="K", help="candidates listed per image (default 3)")
-    parser.add_argument("--pfa", type=_probability, default=1e-3, metavar="P",
+    parser.add_argument("--pfa", type=probability, default=1e-3, metavar="P",
                         help="false-alarm probability of an attribution over everything searched (default 0.001)")
     parser.add_argument("--scales", default=None, metavar="LO:HI[:STEP]",
                         help="search scales for resized images: 'LO:HI' (automatic step: at most 0.5 pixel off at "
@@ -55,16 +56,6 @@ def register(sub) -> None:
     add_execution_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
-
-
-def _probability(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (0.0 < value < 1.0):
-        raise argparse.ArgumentTypeError(f"--pfa '{text}': give a probability between 0 and 1, e.g. 0.001")
-    return value
 
 
 def run(args: argparse.Namespace) -> int:
