@@ -271,9 +271,13 @@ def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion:
     return result, ncc0
 
 
-def _false_alarm(z: float, n: int) -> tuple[float, float]:
-    """``1 − (1 − Q(z))^n`` and its log10, stable for tiny and for large tails."""
-    log_p = float(special.log_ndtr(-z))  # log Q(z)
+def _false_alarm(z: float, n: float, weight: float = 1.0) -> tuple[float, float]:
+    """``1 − (1 − Q(z)/weight)^n`` and its log10, stable for tiny and for large tails.
+
+    ``weight`` is the position's share of a weighted (Bonferroni–Šidák) search: ``n`` positions whose
+    weights sum to ``n`` (one each when unweighted, see :mod:`forensics.prnu.identify`).
+    """
+    log_p = min(0.0, float(special.log_ndtr(-z)) - math.log(weight))  # log(Q(z)/weight)
     p = math.exp(log_p)
     if p > 1e-12:
         log_keep = n * math.log1p(-p) if p < 1.0 else -math.inf

@@ -183,6 +183,77 @@ def test_crop_search_null_is_calibrated(geometry):
         assert np.sum(p <= alpha) <= stats.binom.ppf(0.999, p.size, alpha), (alpha, np.sum(p <= alpha))
 
 
+def _jpeg(image: np.ndarray, quality: int = 90) -> np.ndarray:
+    """A JPEG round trip (PIL), as a camera or an editor writes it."""
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, "JPEG", quality=quality)
+    return np.asarray(Image.open(io.BytesIO(buffer.getvalue())))
+
+
+@pytest.fixture(scope="module")
+def jpeg_geometry() -> dict:
+    """The geometry devices with every image, flats included, written as JPEG (quality 90)."""
+    from forensics.prnu.fingerprint import ImageSet
+
+    devs = devices(77, 4, GEO_SHAPE)
+    fps = []
+    for i, d in enumerate(devs[:3]):
+        flats = simulated_set(d, FLATS, 0.0, np.random.SeedSequence([77, 1, i]), f"dev{i:02d}")
+        jpegs = ImageSet.from_function(FLATS, lambda k, s=flats: _jpeg(s.load(k)), f"dev{i:02d}")
+        fps.append((f"dev{i:02d}", build_fingerprint(jpegs)))
+    return {"fps": fps, "images": [_jpeg(images(d, [77, 9, i], 1)[0]) for i, d in enumerate(devs)]}
+
+
+def test_jpeg_crops_are_searched_on_their_grid_first(jpeg_geometry):
+    """A crop of a decoded JPEG keeps the camera's 8×8 grid: the offsets on it get half the false-alarm
+    budget (search weight n/(2·n_A) ≈ 32), the others the other half (≈ 0.5).  A crop written again as
+    JPEG has its own grid, not the camera's, and is still found, off the grid, at the lower weight."""
+    rng = np.random.default_rng(5)
+    h, w = GEO_SHAPE
+    for i, image in enumerate(jpeg_geometry["images"]):
+        ch, cw = 200, 240
+        y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+        decoded = image[y:y + ch, x:x + cw]
+        for kind, crop in (("decoded", decoded), ("re-encoded", _jpeg(np.ascontiguousarray(decoded)))):
+            q = identify([crop], jpeg_geometry["fps"], pfa=PFA).queries[0]
+            if i == 3:
+                assert q.decision == "unknown", (kind, q.best)
+                continue
+            assert q.device_id == f"dev{i:02d}" and q.best.offset == (y, x), (i, kind, q.best)
+            on_grid = (y % 8, x % 8) == (0, 0)
+            if kind == "decoded" or on_grid:
+                assert q.best.search_weight > 16, (i, kind, q.best)
+            else:
+                assert q.best.search_weight < 1, (i, kind, q.best)
+            # the threshold reported is the one of the peak's class
+            assert q.pce_threshold == pytest.approx(pce_threshold(PFA, q.n_tests / q.best.search_weight))
+
+
+def test_jpeg_crop_search_null_is_calibrated(jpeg_geometry):
+    """JPEG crops of 20 devices outside the set: the weighted search keeps the corrected p_FA's bound
+    (measured: 0, 8 and 28 of 60 at 0.05, 0.2 and 0.5 against 3, 12 and 30 expected), and the grid is
+    found in every one (each best peak has a weight other than 1)."""
+    rng = np.random.default_rng(11)
+    h, w = GEO_SHAPE
+    crops = []
+    for k, device in enumerate(devices(78, 20, GEO_SHAPE)):
+        image = _jpeg(images(device, [78, k], 1)[0])
+        for _ in range(3):
+            ch, cw = int(rng.integers(h // 2, 3 * h // 4)), int(rng.integers(w // 2, 3 * w // 4))
+            y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+            crops.append(image[y:y + ch, x:x + cw])
+    result = identify(crops, jpeg_geometry["fps"], pfa=PFA)
+    assert result.n_attributed == 0
+    assert all(q.best.search_weight != 1.0 for q in result.queries)
+    p = np.array([q.p_fa for q in result.queries])
+    for alpha in (0.05, 0.2, 0.5):
+        assert np.sum(p <= alpha) <= stats.binom.ppf(0.999, p.size, alpha), (alpha, np.sum(p <= alpha))
+
+
 def test_rescaled_images_are_found_by_the_scale_search(geometry):
     """0.7: a whole resized frame, and a resized-then-cropped one (its size no clue to the scale)."""
     search = ScaleSearch(0.6, 0.8, from_size=False)
@@ -441,14 +512,16 @@ def test_dresden_resized_and_cropped_images(dresden):
     at most 0.5 pixel off at the edges) over about two steps around the true scale, which lies between
     grid points, with no clue from the image's size.
 
-    Measured (seed 2024): resized 13/14 attributed, crops 10/14, no false attribution, no non-matching
-    pair at p_FA ≤ 1e-3.  The misses: one image whose full frame has a PCE of only 27 (missed both ways),
-    and crops whose block-phase PCE is 21–40 against the 40 that an offset search over 1.9 million
-    positions per camera needs.  A crop taken from the JPEG's own grid sits at the shifts whose null
-    variance is 1.6–1.85 times the average (module notes), so its honest PCE is about half the plain
-    PCE; the plain PCE would attribute 13/14 crops but let non-matching pairs through at about 2 % (20
-    times the stated p_FA; 2 of 84 pairs above the bound in our trials).  The issue's 90 % at 1024-pixel
-    crops is therefore met by the resized copies and not by the crops at scale 1.
+    Measured (seed 2024): resized 13/14 attributed, crops 11/14, no false attribution, no non-matching
+    pair at p_FA ≤ 1e-3.  Over seeds 1–10 (the same draws, 140 crops) crops were attributed
+    11–13 of 14 per seed, 116/140 = 83 % (95 % CI 76–88 %), with 0 false attributions and 1 of 420
+    non-matching pairs at p_FA ≤ 1e-3.  One image (D70_1 20891) has a full-frame PCE of only 27 and none
+    of its crops can be found; without it 116/130 = 89 %.  The other misses are crops whose block-phase
+    PCE (about half the plain PCE on these JPEGs, module notes) is 20–33, below the 33 that the
+    offsets on the crop's JPEG grid need (the weighted search: half of the false-alarm budget on the
+    1/64 of offsets on the detected grid; the full search over 1.9 million offsets per camera needs 40,
+    and gave 10/14 and 76 %).  The issue's 90 % at 1024-pixel crops is met by the resized copies and
+    not quite by the crops at scale 1; the bound asserted is the lowest per-seed count measured.
     """
     from forensics.io.images import read_image
 
@@ -480,6 +553,6 @@ def test_dresden_resized_and_cropped_images(dresden):
     print(f"attributed: resized {hits['resized']}/{n}, crops {hits['crop']}/{n}; "
           f"non-matching pairs at p_FA ≤ {PFA}: {false_pairs}/{pairs}")
     assert hits["resized"] >= 0.9 * n
-    assert hits["crop"] >= 0.7 * n  # see the docstring: 10/14 measured, the target of 90 % is not met here
+    assert hits["crop"] >= 0.75 * n  # see the docstring: 11–13 of 14 per seed; the target of 90 % is not met
     # the pair-level false-alarm rate is at most the stated p_FA: 84 pairs, so ≤ 1 (the 99 % binomial quantile)
     assert false_pairs <= stats.binom.ppf(0.99, pairs, PFA)
