@@ -3,7 +3,7 @@
 Run::
 
     /work/main/.venv/bin/python benchmarks/bench_identify.py [--queries 1000] [--fingerprints 100]
-        [--size 1024] [--workers 2] [--outside 0.2]
+        [--size 1024] [--workers 2] [--outside 0.2] [--runs full,prescreen]
 
 Data (synthetic, nothing on disk): M devices with a PRNU pattern ``K ~ N(0, σ_k²)`` (σ_k = 0.5 %); each
 fingerprint is ``K`` plus estimation noise of the size a ~20-image fingerprint has; each query is a smooth
@@ -122,7 +122,13 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=1024, help="side of the square frames (default 1024: 1 MP)")
     parser.add_argument("--workers", type=int, default=None, help="worker processes (default: every core)")
     parser.add_argument("--outside", type=float, default=0.2, help="fraction of queries from devices not in the set")
+    parser.add_argument("--runs", default="full,prescreen",
+                        help="comma-separated runs: full (PCE against every fingerprint), prescreen (sketch first)")
     args = parser.parse_args()
+    runs = {"full": ("full PCE", None), "prescreen": ("pre-screen", Prescreen())}
+    chosen = [r.strip() for r in args.runs.split(",") if r.strip()]
+    if not chosen or any(r not in runs for r in chosen):
+        parser.error(f"--runs {args.runs!r}: choose from {', '.join(runs)}")
     shape = (args.size, args.size)
     rng = np.random.default_rng(0)
     m, n = args.fingerprints, args.queries
@@ -140,7 +146,7 @@ def main() -> None:
     print("| run | workers | wall s | queries/s | ms per query·fingerprint | attributed | false | "
           "median true PCE | peak MB (driver / worker) |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for label, pre in (("full PCE", None), ("pre-screen", Prescreen())):
+    for label, pre in (runs[r] for r in chosen):
         with open_executor(args.workers) as ex, MemorySampler() as memory:
             t0 = time.perf_counter()
             result = identify(queries, fps, prescreen=pre, executor=ex)
