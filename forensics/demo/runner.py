@@ -17,7 +17,7 @@ from forensics.report.demo import demo_page
 from forensics.report.html import Report
 
 
-SECTIONS = ("ageing", "prnu", "defects", "check", "impact")
+SECTIONS = ("ageing", "prnu", "attribution", "defects", "check", "impact")
 _PACKAGE = "forensics.demo"
 
 
