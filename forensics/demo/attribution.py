@@ -91,7 +91,10 @@ def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | No
         names, counts = np.unique([truth[i] for i in members], return_counts=True)
         majority[cluster.label] = str(names[np.argmax(counts)])
     queries, query_truth, kinds = _queries(cameras, rng)
-    found = identify(queries, db, pfa=PFA, executor=executor, progress=progress)
+    (workdir / "queries").mkdir()
+    # as files: workers read their queries themselves (image bytes never pass through the executor)
+    query_files = [str(write_image(workdir / "queries" / f"Q_{i:03d}.png", q)) for i, q in enumerate(queries)]
+    found = identify(query_files, db, pfa=PFA, executor=executor, progress=progress)
 
     named = [majority.get(q.device_id) if q.device_id else None for q in found.queries]
     correct = sum(n == t for n, t in zip(named, query_truth) if t is not None)

@@ -8,12 +8,15 @@ bug, not noise.
 """
 from __future__ import annotations
 
+from forensics._shared.parallel import Executor
 from forensics._shared.progress import no_progress
 from forensics.demo import attribution
 
 
 def test_attribution_demo_recovers_the_cameras(tmp_path):
-    section = attribution.run(tmp_path, 0, no_progress)
+    # on worker processes, as `forensics demo` runs it (they read every query from its file)
+    with Executor("processes", workers=2) as executor:
+        section = attribution.run(tmp_path, 0, no_progress, executor)
     data = section.data
     assert data["images"] == attribution.CAMERAS * attribution.PER_CAMERA + attribution.STRANGERS
     assert data["clusters"] == attribution.CAMERAS
