@@ -418,7 +418,7 @@ class Candidate:
     @property
     def log_tail(self) -> float:
         """``log(Q(z)/search_weight)``: candidates rank by it, smallest (strongest) first."""
-        return float(special.log_ndtr(-self.z)) - math.log(self.search_weight)
+        return _log_tail(self.z, self.search_weight)
 
     def geometry(self) -> str:
         """Where the query matched, for tables: ``'aligned'`` or e.g. ``'rot 90°, scale 0.7, at (12, 40)'``."""
@@ -879,6 +879,11 @@ class _QueryImage:
         return self._sketches[key]
 
 
+def _log_tail(z: float, weight: float) -> float:
+    """``log(Q(z)/weight)``: a peak's tail in a weighted search (smaller is stronger)."""
+    return float(special.log_ndtr(-z)) - math.log(weight)
+
+
 def _z(pce_value: float) -> float:
     return math.copysign(math.sqrt(abs(pce_value)), pce_value)
 
@@ -1021,9 +1026,7 @@ def _weighted_argmax(z: np.ndarray, phase_rows: np.ndarray, phase_cols: np.ndarr
     masked[np.ix_(ra, ca)] = -np.inf
     ib = np.unravel_index(int(np.argmax(masked)), masked.shape)
     pos_r = (int(ib[0]), int(ib[1]))
-    score_a = float(special.log_ndtr(-z[pos_a])) - math.log(w_a)
-    score_r = float(special.log_ndtr(-z[pos_r])) - math.log(w_r)
-    return (pos_a, w_a) if score_a <= score_r else (pos_r, w_r)
+    return (pos_a, w_a) if _log_tail(z[pos_a], w_a) <= _log_tail(z[pos_r], w_r) else (pos_r, w_r)
 
 
 def _run_test(query: _QueryImage, ref: _Reference, test: _Test, exclusion: int) -> tuple[_Peak, tuple[int, int]]:
@@ -1058,7 +1061,7 @@ def _score_reference(query: _QueryImage, ref: _Reference, tests: list[_Test], ex
     best: tuple[float, _Peak, _Test, tuple[int, int]] | None = None
     for test in tests:
         peak, offset = _run_test(query, ref, test, exclusion)
-        tail = float(special.log_ndtr(-_z(peak.pce))) - math.log(peak.weight)
+        tail = _log_tail(_z(peak.pce), peak.weight)
         if best is None or tail < best[0]:
             best = (tail, peak, test, offset)
     assert best is not None
