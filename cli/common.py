@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import sys
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from forensics._shared.jsonsafe import dumps
 from forensics._shared.progress import Progress, choose_progress
 
 EXIT_OK = 0
@@ -100,7 +100,7 @@ def emit(args: argparse.Namespace, summary: str | Callable[[], str], payload: di
     """Print ``payload`` as one JSON object with --json, else the human ``summary``."""
     if getattr(args, "json", False):
         obj = payload() if callable(payload) else payload
-        json.dump(to_jsonable(obj), sys.stdout, indent=2, allow_nan=False)
+        sys.stdout.write(dumps(obj, indent=2))
         sys.stdout.write("\n")
     else:
         text = summary() if callable(summary) else summary
@@ -116,27 +116,3 @@ def info(args: argparse.Namespace, message: str) -> None:
 def warn(message: str) -> None:
     """A warning on stderr, always shown."""
     print(f"warning: {message}", file=sys.stderr)
-
-
-def to_jsonable(obj: Any) -> Any:
-    """Convert numpy scalars/arrays, paths, dataclasses with ``to_dict`` and NaN into JSON-safe values."""
-    import math
-    from pathlib import Path
-
-    import numpy as np
-
-    if hasattr(obj, "to_dict") and not isinstance(obj, type):
-        return to_jsonable(obj.to_dict())
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return to_jsonable(obj.item())
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj

@@ -15,6 +15,8 @@ from forensics._shared.atomic import (
 )
 from forensics._shared.errors import ForensicsError, InputError, UsageError
 from forensics._shared.filters import median_filter
+from forensics._shared.jsonsafe import dumps, to_jsonable
+from forensics._shared.limits import memory_limit, pixel_limit, require_memory, require_pixels
 from forensics._shared.progress import Progress, choose_progress, no_progress, tqdm_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record, spawn
 
@@ -23,6 +25,8 @@ __all__ = [
     "atomic_directory", "atomic_file", "refuse_existing", "refuse_inputs", "write_json", "write_text",
     "ForensicsError", "InputError", "UsageError",
     "median_filter",
+    "dumps", "to_jsonable",
+    "memory_limit", "pixel_limit", "require_memory", "require_pixels",
     "Progress", "choose_progress", "no_progress", "tqdm_progress",
     "RngLike", "as_generator", "keyed_generator", "seed_record", "spawn",
 ]

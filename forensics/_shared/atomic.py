@@ -7,7 +7,6 @@ output is refused unless ``force`` is true, and an input is never overwritten.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import tempfile
@@ -16,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from forensics._shared.errors import UsageError
+from forensics._shared.jsonsafe import dumps
 
 
 def refuse_existing(path: str | os.PathLike, force: bool) -> Path:
@@ -59,22 +59,8 @@ def write_text(path: str | os.PathLike, text: str, force: bool = False) -> Path:
 
 
 def write_json(path: str | os.PathLike, obj: Any, force: bool = False) -> Path:
-    """Write ``obj`` as indented JSON to ``path`` atomically."""
-    return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n", force=force)
-
-
-def _json_default(obj: Any) -> Any:
-    import numpy as np
-
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    if hasattr(obj, "to_dict"):
-        return obj.to_dict()
-    raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
+    """Write ``obj`` as indented standard JSON to ``path`` atomically (:func:`~forensics._shared.jsonsafe.dumps`)."""
+    return write_text(path, dumps(obj, indent=2) + "\n", force=force)
 
 
 @contextlib.contextmanager

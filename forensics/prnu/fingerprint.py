@@ -66,6 +66,7 @@ from scipy import ndimage
 from forensics import __version__
 from forensics._shared.atomic import atomic_file
 from forensics._shared.errors import InputError, UsageError
+from forensics._shared.jsonsafe import dumps, to_jsonable
 from forensics._shared.parallel import Checkpoint, Executor, chunks, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.arrays import GREY_WEIGHTS, full_scale
@@ -512,20 +513,6 @@ class ImageSet:
 # ----------------------------------------------------------------------------- the fingerprint
 
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
 @dataclass
 class Fingerprint:
     """A camera fingerprint with its provenance.
@@ -571,7 +558,7 @@ class Fingerprint:
             "n_images": int(self.n_images),
             "frame_shape": [int(v) for v in self.frame_shape],
             "shape": [int(v) for v in self.K.shape],
-            "parameters": _jsonable(self.parameters),
+            "parameters": to_jsonable(self.parameters),
         }
 
     def save(self, path: str | os.PathLike, force: bool = False) -> Path:
@@ -583,7 +570,7 @@ class Fingerprint:
             If ``path`` exists and ``force`` is false.
         """
         path = Path(path)
-        meta = json.dumps(self.to_dict())
+        meta = dumps(self.to_dict())
         with atomic_file(path, force=force, mode="wb") as handle:
             # uncompressed: K is noise-like, zlib would gain a few per cent for seconds of CPU
             np.savez(handle, K=np.asarray(self.K, np.float32), meta=np.array(meta))
@@ -878,7 +865,7 @@ class FingerprintBuilder:
                 **self._estimator(),
                 "dtype": str(self._dtype),
                 "white_level": float(self.white_level) if self.white_level is not None else None,
-                "black_level": _jsonable(self.black_level),
+                "black_level": to_jsonable(self.black_level),
                 "saturation_level": self.saturation_level,
                 "saturation_dilate": self.saturation_dilate,
                 "rolloff": self.rolloff,
