@@ -16,17 +16,17 @@ The fit streams over the frames, never holding more than one of them (plus a chu
 1. **Sums.**  One pass accumulates, per pixel, Σy, Σt·y, Σy² over the group and Σy, Σy² over its biases
    (float64; the design sums Σt, Σt², Σt³ are the group's, corrected per pixel for the few samples left out).
    Samples at or above the saturation level are recorded sparsely and left out (non-linear or clipped).
-2. **Robust rounds.**  Each round streams the frames again and tests every sample against the current fit:
-   its *deleted* residual (the residual it would have if its own frame were left out of the pixel's line,
-   z = e / (σ·√(1 − h)), h the sample's leverage) above ``k`` standard deviations of the read + shot noise
-   model marks a cosmic-ray hit (charge is only ever added, so the test is one-sided); the hit's neighbours
-   in the same frame are marked from ``k_grow`` σ, since a track spreads charge.  Marked samples are left
-   out (their sums subtracted) and every pixel's line is solved again.  A single frame per exposure is
-   enough: the deleted residual does not let the hit pull the line towards itself.
-3. The last round also measures, per frame, its common-mode residual (the median over pixels of y − a − r·t:
-   a frame whose median dark level is off the line, or whose bias drifted), its noise against the model and
-   its share of rejected samples, and, per pixel, the residual sum of squares (for the per-pixel excess noise
-   and the gain from the dark signal's shot noise, :mod:`forensics.defects.darkgain`).
+2. **Cosmic rays** (:mod:`forensics.defects.darkrounds`).  Each round streams the frames again and finds, per
+   pixel, its most discrepant sample against the current line, in units of that residual's exact standard
+   deviation under the read + shot noise model; above ``k`` it is a cosmic-ray hit (charge is only ever added,
+   so the test is one-sided), and the hit's neighbours in the same frame go from ``k_grow`` (a track spreads
+   charge).  Hits are left out (their sums subtracted) and every pixel's line is solved again.  One sample per
+   pixel per round, because a hit pulls the whole line; a single frame per exposure is enough.
+3. **Diagnostics.**  A last pass measures, per frame, its common-mode residual (the median over pixels of
+   y − a − r·t: a frame whose median dark level is off the lines, or whose bias jumped), its noise against the
+   model and its read noise (biases), and, per pixel, the residual sum of squares: pixels far beyond the noise
+   model do not follow a line (*misfits*), and the others give the gain from the
+   dark signal's shot noise (:mod:`forensics.defects.darkgain`).
 
 Every pixel's rate has a standard error from the noise model (read noise, shot noise of its dark charge, and
 the frame-to-frame offset jitter σ_o measured on the bias frames); the group's median rate has an interval
@@ -37,9 +37,11 @@ around the set point needs no temperature law.
 
 Frames are grouped by their set point (or, without one, by their measured temperature); a frame whose measured
 temperature is more than :data:`forensics.io.fits.SETPOINT_TOLERANCE_C` from its set point never settled and
-is left out, named.  Memory: about 40 bytes per pixel per temperature group for the sums, 20 more per group
-during a robust round (the fit shipped to the workers) and 8 in the last round; the result keeps about
-18 bytes per pixel per group (offset, rate, its error, residual noise, samples used).
+is left out, named.  Memory per pixel and temperature group: 40 bytes of sums (float64), 28 bytes of the lines
+shipped to each worker and 10–12 bytes of per-pass partial results (float32 z, its frame and value; float64
+residual squares); the result keeps about 40 bytes (offset, rate, its error, residual noise, samples used,
+residual squares and dark charge for the gain).  ``rounds + 2`` passes over the frames in all (plus one over
+the flat pairs).
 """
 from __future__ import annotations
 
@@ -49,7 +51,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import ndimage
 
 from forensics._shared.errors import InputError
 from forensics._shared.progress import Progress, no_progress
@@ -349,108 +350,6 @@ def solve_lines(sums: GroupSums, exposures: np.ndarray, extra_pixel: np.ndarray 
     return LineFit(offset, rate, n, mean_t, np.where(ok, centred, np.nan), t3, sx)
 
 
-# =========================================================================== robust rounds
-@dataclass
-class RoundState:
-    """What every round's work item needs (shipped once per worker): each group's fit and the noise model."""
-
-    shape: tuple[int, int]
-    offset: list[np.ndarray]
-    rate: list[np.ndarray]
-    n: list[np.ndarray]
-    mean_t: list[np.ndarray]
-    sxx: list[np.ndarray]
-    sx: list[np.ndarray]
-    t3: list[np.ndarray]
-    noise: "NoiseModel"
-    dropped: list[dict[int, np.ndarray]]
-    exempt: list[np.ndarray]
-
-
-@dataclass
-class FrameStats:
-    """One frame's measurements in a round."""
-
-    local: int
-    flagged_pixel: np.ndarray
-    flagged_value: np.ndarray
-    common_residual: float
-    noise_ratio: float
-    frame_read_noise: float | None
-    tested: int
-
-
-def residual_variance(t: float, offset: np.ndarray, rate: np.ndarray, n: np.ndarray, mean_t: np.ndarray,
-                      sxx: np.ndarray, sx: np.ndarray, t3: np.ndarray, bias: float, read_noise: float,
-                      gain: float) -> np.ndarray:
-    """Variance of the least-squares residual of the sample at exposure ``t`` under the noise model.
-
-    With σ_f² = A + B·t_f (A = σ_r² + max(a − B₀, 0)/g, B = max(r, 0)/g), leverages h_fj = 1/n + u_f·u_j/Sxx
-    (u = t − t̄): Var e_f = σ_f²(1 − 2h_ff) + Σ_j h_fj²σ_j² = A(1 − h_ff) + B·[t_f(1 − 2h_ff) + Σt/n² + 2u_f/n +
-    u_f²·Σu²t/Sxx²].  Exact where the noise is heteroscedastic (shot noise), where the homoscedastic σ_f²(1 − h_ff)
-    overstates a long exposure's residual variance and hides hits in it.
-    """
-    t32 = np.float32(t)
-    inv_gain = np.float32(1.0 / gain)
-    a_term = np.float32(read_noise ** 2) + np.maximum(offset - np.float32(bias), 0) * inv_gain
-    b_term = np.maximum(rate, 0) * inv_gain
-    u = t32 - mean_t
-    h = 1 / n + u * u / sxx
-    shot = t32 * (1 - 2 * h) + sx / (n * n) + 2 * u / n + u * u * t3 / (sxx * sxx)
-    return a_term * (1 - h) + b_term * shot
-
-
-def round_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, float], ...], bool]
-               ) -> tuple[int, list[FrameStats], np.ndarray | None]:
-    """Work item of a robust round: test a chunk of frames against the group's fit (see the module notes).
-
-    Returns the group, each frame's statistics and marked samples, and (last round) the chunk's per-pixel
-    residual sum of squares over the samples kept.
-    """
-    group, frames, last = item
-    shape = state.shape
-    nm = state.noise
-    a, r = state.offset[group], state.rate[group]
-    fit = (state.n[group], state.mean_t[group], state.sxx[group], state.sx[group], state.t3[group])
-    esq = np.zeros(a.size, np.float64) if last else None
-    out = []
-    for local, path, t in frames:
-        data = load_frame(path)
-        _check_shape(data, shape, path)
-        y = data.astype(np.float32).ravel()
-        e = y - a - r * np.float32(t)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            var = residual_variance(t, a, r, *fit, nm.bias_level[group], nm.read_noise[group], nm.gain)
-            z = e / np.sqrt(var)
-        valid = np.isfinite(z) & (var > 0)
-        gone = state.dropped[group].get(local)
-        if gone is not None and gone.size:
-            valid[gone] = False
-        testable = valid.copy()
-        testable[state.exempt[group]] = False
-        flag = testable & (z > nm.k)
-        if nm.k_grow < nm.k and flag.any():
-            near = ndimage.binary_dilation(flag.reshape(shape), structure=np.ones((3, 3), bool)).ravel()
-            flag |= near & testable & (z > nm.k_grow)
-        kept = valid & ~flag
-        idx = np.flatnonzero(flag)
-        zk = z[kept]
-        med_z = float(np.median(zk)) if zk.size else float("nan")
-        ratio = float(1.4826 * np.median(np.abs(zk - med_z))) if zk.size else float("nan")
-        frame_rn = None
-        if t == 0 and kept.any():
-            with np.errstate(divide="ignore", invalid="ignore"):
-                scaled = e[kept] / np.sqrt(1 - 1 / fit[0][kept] - fit[1][kept] ** 2 / fit[2][kept])
-            frame_rn = float(1.4826 * np.median(np.abs(scaled - np.median(scaled))))
-        out.append(FrameStats(local, idx.astype(np.int64), y[idx].astype(np.float64),
-                              float(np.median(e[kept])) if kept.any() else float("nan"), ratio, frame_rn,
-                              int(valid.sum())))
-        if esq is not None:
-            ek = np.where(kept, e, 0).astype(np.float64)
-            esq += ek * ek
-    return group, out, esq
-
-
 # =========================================================================== results
 @dataclass
 class FrameReport:
@@ -465,6 +364,7 @@ class FrameReport:
     used: bool
     reason: str = ""
     common_residual: float | None = None
+    dark_level: float | None = None
     noise_ratio: float | None = None
     read_noise: float | None = None
     outliers: int = 0
@@ -602,6 +502,7 @@ def fit_dark_series(plan: SeriesPlan, gain: float | None = None, saturation: flo
     """
     from forensics._shared.parallel import resolve
     from forensics.defects import darkgain
+    from forensics.defects.darkrounds import NoiseModel, robust_fit
 
     ex = resolve(executor)
     frames = plan.frames
@@ -622,8 +523,8 @@ def fit_dark_series(plan: SeriesPlan, gain: float | None = None, saturation: flo
         gain_info["flat_pairs"] = flat.to_dict()
     gain_used, source = _choose_gain(gain, flat, gain_info["header_e_per_adu"], warnings)
     noise = NoiseModel(bias_level, read_noise, gain_used, k, k_grow)
-    lines, extra, stats, esq, misfit = _robust_rounds(plan, sums, exposures, lines, noise, rounds, ex, progress)
-    groups, reports = _summarise(plan, sums, lines, extra, exposures, stats, esq, misfit, noise, warnings)
+    robust = robust_fit(plan, sums, exposures, noise, max(0, rounds), ex, progress)
+    groups, reports = _summarise(plan, sums, robust, exposures, noise, warnings)
     dark_ptc = darkgain.dark_shot_gain(groups, gain_used)
     if dark_ptc is not None:
         gain_info["dark_shot_noise"] = dark_ptc.to_dict()
@@ -632,80 +533,8 @@ def fit_dark_series(plan: SeriesPlan, gain: float | None = None, saturation: flo
     return DarkSeriesFit(shape, groups, reports, gain_used, source, gain_info, saturation, settings, warnings)
 
 
-@dataclass(frozen=True)
-class NoiseModel:
-    """Each group's median bias B and read noise σ_r, the gain g and the outlier test's thresholds."""
-
-    bias_level: list[float]
-    read_noise: list[float]
-    gain: float
-    k: float
-    k_grow: float
-
-
-Drops = tuple[np.ndarray, np.ndarray, np.ndarray]  # (pixel, frame within group, value) of samples left out
-
-
-def _robust_rounds(plan: SeriesPlan, sums: list[GroupSums], exposures: list[np.ndarray], lines: list[LineFit],
-                   noise: NoiseModel, rounds: int, ex: Any, progress: Progress
-                   ) -> tuple[list[LineFit], list[Drops], dict[tuple[int, int], FrameStats], list[np.ndarray | None],
-                              list[np.ndarray]]:
-    """Mark cosmic-ray hits round by round and refit (see the module notes).
-
-    A pixel with more marked samples than cosmic rays could plausibly give it (:func:`max_hits`, from the
-    observed rate of hits) does not follow a line at all — a hot pixel whose dark signal is not linear in the
-    exposure: its marks are withdrawn, it is exempt from later rounds and reported as a misfit.
-    """
-    empty = (np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0))
-    extra: list[Drops] = [empty for _ in sums]
-    exempt = [np.zeros(s.sy.size, bool) for s in sums]
-    stats: dict[tuple[int, int], FrameStats] = {}
-    esq: list[np.ndarray | None] = [None] * len(sums)
-    total = max(1, rounds)
-    for round_index in range(total):
-        last = round_index == total - 1
-        state = _round_state(sums[0].shape, sums, lines, extra, exempt, noise)
-        items = [(g, chunk, last) for g, chunk in _chunks(plan, exposures)]
-        new: list[list[Drops]] = [[] for _ in sums]
-        for g, frame_stats, part in ex.map(round_item, items, shared=state, progress=progress,
-                                           desc=f"dark series: round {round_index + 1}"):
-            for fs in frame_stats:
-                stats[(g, fs.local)] = fs  # the last round's measurements are the ones reported
-                new[g].append((fs.flagged_pixel, np.full(fs.flagged_pixel.size, fs.local, np.int32), fs.flagged_value))
-            if part is not None:
-                esq[g] = part if esq[g] is None else esq[g] + part
-        for g in range(len(sums)):
-            merged = tuple(np.concatenate([extra[g][j]] + [x[j] for x in new[g]]) for j in range(3))
-            extra[g], misfits = _withdraw_misfits(merged, sums[g].sy.size)  # type: ignore[arg-type]
-            exempt[g] |= misfits
-        lines = [solve_lines(s, t, *x) for s, t, x in zip(sums, exposures, extra)]
-    return lines, extra, stats, esq, exempt
-
-
-def max_hits(rate: float, pixels: int) -> int:
-    """The most cosmic-ray hits one pixel may plausibly take: the smallest m with pixels·P(Poisson(rate) > m) < ½."""
-    from scipy import stats
-
-    m = 1
-    while pixels * float(stats.poisson.sf(m, rate)) >= 0.5:
-        m += 1
-    return m
-
-
-def _withdraw_misfits(drops: Drops, size: int) -> tuple[Drops, np.ndarray]:
-    """Withdraw the marks of pixels with more marked samples than cosmic rays explain; return them as misfits."""
-    pix = drops[0]
-    misfit = np.zeros(size, bool)
-    if pix.size == 0:
-        return drops, misfit
-    counts = np.bincount(pix, minlength=size)
-    limit = max_hits(pix.size / size, size)
-    misfit = counts > limit
-    keep = ~misfit[pix]
-    return (pix[keep], drops[1][keep], drops[2][keep]), misfit
-
-
-def _chunks(plan: SeriesPlan, exposures: list[np.ndarray]) -> list[tuple[int, tuple[tuple[int, str, float], ...]]]:
+def chunk_items(plan: SeriesPlan, exposures: list[np.ndarray]) -> list[tuple[int, tuple[tuple[int, str, float], ...]]]:
+    """Each group's frames cut into work items of :data:`CHUNK_FRAMES`: ``(group, ((frame in group, path, exposure), …))``."""
     out = []
     for g, members in enumerate(plan.groups):
         entries = [(local, plan.frames[i].path, float(exposures[g][local])) for local, i in enumerate(members)]
@@ -715,7 +544,7 @@ def _chunks(plan: SeriesPlan, exposures: list[np.ndarray]) -> list[tuple[int, tu
 
 def _pass_sums(plan: SeriesPlan, exposures: list[np.ndarray], saturation: float | None, ex: Any,
                progress: Progress) -> list[GroupSums]:
-    items = [(g, chunk, saturation) for g, chunk in _chunks(plan, exposures)]
+    items = [(g, chunk, saturation) for g, chunk in chunk_items(plan, exposures)]
     sums: list[GroupSums | None] = [None] * len(plan.groups)
     for g, part in ex.map(sums_item, items, progress=progress, desc="dark series: sums"):
         sums[g] = part if sums[g] is None else sums[g].merge(part)  # type: ignore[union-attr]
@@ -802,27 +631,8 @@ def _choose_gain(gain: float | None, flat: Any, header: float | None, warnings: 
     return 1.0, "assumed 1"
 
 
-def _round_state(shape: tuple[int, int], sums: list[GroupSums], lines: list[LineFit], extra: list[Drops],
-                 exempt: list[np.ndarray], noise: NoiseModel) -> RoundState:
-    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (the shipped fit: 28 bytes per pixel per group)
-    dropped = []
-    for s, x in zip(sums, extra):
-        pix = np.concatenate([s.drop_pixel, x[0]])
-        fr = np.concatenate([s.drop_frame, x[1]])
-        order = np.argsort(fr, kind="stable")
-        pix, fr = pix[order], fr[order]
-        bounds = np.flatnonzero(np.diff(fr)) + 1
-        dropped.append({int(fr[p[0]]): pix[p] for p in np.split(np.arange(fr.size), bounds) if p.size})
-    return RoundState(shape, [f32(li.offset) for li in lines], [f32(li.rate) for li in lines],
-                      [f32(li.n) for li in lines], [f32(li.mean_t) for li in lines], [f32(li.sxx) for li in lines],
-                      [f32(li.sx) for li in lines], [f32(li.t3) for li in lines], noise, dropped,
-                      [np.flatnonzero(e) for e in exempt])
-
-
-def _summarise(plan: SeriesPlan, sums: list[GroupSums], lines: list[LineFit], extra: list[Drops],
-               exposures: list[np.ndarray], stats: dict[tuple[int, int], FrameStats], esq: list[np.ndarray | None],
-               misfit: list[np.ndarray], noise: NoiseModel, warnings: list[str]
-               ) -> tuple[list[GroupFit], list[FrameReport]]:
+def _summarise(plan: SeriesPlan, sums: list[GroupSums], robust: Any, exposures: list[np.ndarray], noise: Any,
+               warnings: list[str]) -> tuple[list[GroupFit], list[FrameReport]]:
     frames = plan.frames
     reports: list[FrameReport] = []
     index_of: dict[int, FrameReport] = {}
@@ -835,34 +645,29 @@ def _summarise(plan: SeriesPlan, sums: list[GroupSums], lines: list[LineFit], ex
         index_of[i] = rep
     groups = []
     for g, members in enumerate(plan.groups):
-        s, line, t = sums[g], lines[g], exposures[g]
-        jitter = _offset_jitter(g, members, t, stats)
+        s, t, jitter = sums[g], exposures[g], robust.jitter[g]
         if jitter == 0.0:
             warnings.append(f"{plan.label(g)}: fewer than three bias frames, so the frame-to-frame offset jitter is "
                             "unknown: the median rate's interval holds its pixel-sampling error only, and no frame "
                             "can be named as off the fitted lines")
+        readings = {plan.frames[i].temperature_c for i in members if plan.frames[i].exposure_s > 0}
+        if len(readings) == 1 and None not in readings:
+            warnings.append(f"{plan.label(g)}: every dark frame reads the same temperature, so the thermometer's "
+                            "resolution is unknown and its step is not part of the temperature's uncertainty")
         sat_count = np.bincount(s.drop_frame, minlength=len(members))
-        out_count = np.bincount(extra[g][1], minlength=len(members))
+        out_count = np.bincount(robust.drops[g][1], minlength=len(members))
         for local, i in enumerate(members):
             rep = index_of[i]
-            fs = stats.get((g, local))
+            fs = robust.stats.get((g, local))
             rep.group, rep.used = g, True
             rep.saturated, rep.outliers = int(sat_count[local]), int(out_count[local])
             if fs is not None:
                 rep.common_residual, rep.noise_ratio = fs.common_residual, fs.noise_ratio
+                rep.dark_level = fs.dark_level
                 rep.read_noise, rep.tested = fs.frame_read_noise, fs.tested
             rep.problems = _frame_problems(rep, jitter)
-        groups.append(_group_fit(plan, g, s, line, t, jitter, noise.bias_level[g], noise.read_noise[g], noise.gain,
-                                 esq[g], [index_of[i] for i in members], int(extra[g][0].size),
-                                 int(s.drop_pixel.size), misfit[g]))
+        groups.append(_group_fit(plan, g, s, robust, t, noise, [index_of[i] for i in members]))
     return groups, reports
-
-
-def _offset_jitter(g: int, members: tuple[int, ...], t: np.ndarray, stats: dict[tuple[int, int], FrameStats]) -> float:
-    """σ_o: the scatter of the biases' common-mode residuals (the frame-to-frame offset jitter), 0 if unknown."""
-    values = [stats[(g, local)].common_residual for local in range(len(members))
-              if t[local] == 0 and (g, local) in stats and math.isfinite(stats[(g, local)].common_residual)]
-    return float(np.std(values, ddof=1)) if len(values) >= 3 else 0.0
 
 
 def _frame_problems(rep: FrameReport, jitter: float) -> list[str]:
@@ -879,45 +684,46 @@ def _frame_problems(rep: FrameReport, jitter: float) -> list[str]:
     return problems
 
 
-def _group_fit(plan: SeriesPlan, g: int, s: GroupSums, line: LineFit, t: np.ndarray, jitter: float, bias: float,
-               read_noise: float, gain: float, esq: np.ndarray | None, reports: list[FrameReport], outliers: int,
-               saturated: int, misfit: np.ndarray) -> GroupFit:
+def _group_fit(plan: SeriesPlan, g: int, s: GroupSums, robust: Any, t: np.ndarray, noise: Any,
+               reports: list[FrameReport]) -> GroupFit:
+    from forensics.defects.darkrounds import expected_residual_sq
+
+    line, jitter, esq = robust.lines[g], robust.jitter[g], robust.residual_sq[g]
+    bias, read_noise, gain = noise.bias_level[g], noise.read_noise[g], noise.gain
     members = plan.groups[g]
-    temps = np.array([plan.frames[i].temperature_c for i in members], dtype=object)
+    temps = [plan.frames[i].temperature_c for i in members]
     centred = t - t.mean()
     sxx = float((centred * centred).sum())
     weights = centred * t / sxx  # c_f·t_f: the slope's sensitivity to each frame's rate; sums to 1
     if all(v is not None for v in temps):
-        temps = temps.astype(float)
-        t_eff = float((weights * temps).sum())
-        spread = float(np.std(temps[t > 0], ddof=1)) if (t > 0).sum() >= 2 else 0.0
+        temp = np.asarray(temps, float)
+        t_eff = float((weights * temp).sum())
+        spread = float(np.std(temp[t > 0], ddof=1)) if (t > 0).sum() >= 2 else 0.0
         t_se = spread * float(np.sqrt((weights ** 2).sum()))
+
     else:
         t_eff, t_se = None, 0.0
     a, r = line.offset, line.rate
-    charge0 = np.maximum(a - bias, 0)
-    base = read_noise ** 2 + jitter ** 2 + charge0 / gain
+    base = read_noise ** 2 + jitter ** 2 + np.maximum(a - bias, 0) / gain
+    expected, shot = expected_residual_sq(line, bias, read_noise, jitter, gain)
     with np.errstate(divide="ignore", invalid="ignore"):
         var_r = base / line.sxx + np.maximum(r, 0) / gain * line.t3 / line.sxx ** 2
-        shot = charge0 * (line.n - 2) + np.maximum(r, 0) * (line.sx - line.sx / line.n - line.t3 / line.sxx)
-        expected = (read_noise ** 2 + jitter ** 2) * (line.n - 2) + shot / gain
-        ratio = np.sqrt(esq / expected) if esq is not None else np.full(a.size, np.nan)
+        ratio = np.sqrt(esq / expected)
     finite = np.isfinite(r)
     med = float(np.median(r[finite])) if finite.any() else float("nan")
     spread_r = 1.4826 * float(np.median(np.abs(r[finite] - med))) if finite.any() else float("nan")
-    stat_se = 1.2533 * spread_r / math.sqrt(max(int(finite.sum()), 1))
-    common_se = jitter / math.sqrt(sxx)
-    bias_se = jitter / math.sqrt(s.n_bias) if s.n_bias else float("nan")
-    const = (s.lo == s.hi)
+    stat_se = 1.2533 * spread_r / math.sqrt(max(int(finite.sum()), 1))  # the median's sampling error
+    common_se = jitter / math.sqrt(sxx)  # the offset jitter moves every pixel's slope alike
     rn_frames = [rep.read_noise for rep in reports if rep.read_noise is not None]
     return GroupFit(
         label=plan.label(g), set_temperature_c=plan.setpoints[g], temperature_c=t_eff, temperature_se=t_se,
-        frames=list(members), exposures=t.tolist(), n_bias=s.n_bias, bias_level=bias, bias_level_se=bias_se,
+        frames=list(members), exposures=t.tolist(), n_bias=s.n_bias, bias_level=bias,
+        bias_level_se=jitter / math.sqrt(s.n_bias) if s.n_bias else float("nan"),
         read_noise=read_noise, read_noise_frames=rn_frames, offset_jitter=jitter, median_rate=med,
-        median_rate_se=math.hypot(stat_se, common_se), median_rate_common_se=common_se, outliers=outliers,
-        saturated=saturated, shape=s.shape, offset=a.astype(np.float32), rate=r.astype(np.float32),
-        rate_se=np.sqrt(var_r).astype(np.float32), noise_ratio=ratio.astype(np.float32),
-        used=np.nan_to_num(line.n).astype(np.uint16), constant=const, misfit=misfit,
-        exposure_weights=weights.tolist(),
-        residual_sq=esq, shot_charge=np.where(np.isfinite(shot), shot, np.nan),
+        median_rate_se=math.hypot(stat_se, common_se), median_rate_common_se=common_se,
+        outliers=int(robust.drops[g][0].size), saturated=int(s.drop_pixel.size), shape=s.shape,
+        offset=a.astype(np.float32), rate=r.astype(np.float32), rate_se=np.sqrt(var_r).astype(np.float32),
+        noise_ratio=ratio.astype(np.float32), used=np.nan_to_num(line.n).astype(np.uint16), constant=(s.lo == s.hi),
+        misfit=robust.misfit[g], exposure_weights=weights.tolist(), residual_sq=esq,
+        shot_charge=np.where(np.isfinite(shot), shot, np.nan),
     )

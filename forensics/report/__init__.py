@@ -1,6 +1,6 @@
 """Everything that is drawn or laid out: the HTML writer (:class:`Report`, :func:`new_figure`) and one
 module of figures per domain — :mod:`~forensics.report.ageing`, :mod:`~forensics.report.prnu`,
-:mod:`~forensics.report.defects`, :mod:`~forensics.report.scores`, :mod:`~forensics.report.validate`,
+:mod:`~forensics.report.defects`, :mod:`~forensics.report.darkseries`, :mod:`~forensics.report.scores`, :mod:`~forensics.report.validate`,
 :mod:`~forensics.report.cluster`, :mod:`~forensics.report.identify`
 (and the model check's) — plus the demo's page.  Report functions take result objects and never
 re-estimate; science modules never import this package.
@@ -13,6 +13,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
         "cluster": ["add_clusters", "cluster_report"],
+        "darkseries": ["dark_report"],
         "defects": ["dating_report", "detection_report", "growth_report"],
         "html": ["Report", "new_figure"],
         "identify": ["add_identification", "identification_report"],
