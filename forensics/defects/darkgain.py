@@ -8,9 +8,9 @@
   cosmic rays left out).  Disjoint consecutive pairs give independent estimates; their spread is the interval.
 * **The dark signal's shot noise** (a photon-transfer curve of dark charge): every pixel's scatter about its
   fitted line is read noise plus the shot noise of its own dark charge, so pixels of many different dark
-  rates (the hot ones above all) give the gain without any light.  For pixels whose expected scatter is
-  mostly shot noise, the gain is the g at which the median of (residual sum of squares / expected) is the
-  χ² median it should be.  Ten interleaved subsets of those pixels give the interval.
+  rates (the hot ones above all) give the gain without any light.  For pixels whose expected scatter is at
+  least half shot noise (misfits left out), E[Σe²] = read part + shot part / g summed over the pixels gives g;
+  ten interleaved subsets of those pixels give the interval.
 
 Neither depends on the maker's figure (EGAIN in the header), which is reported beside them.
 """
@@ -31,8 +31,11 @@ if TYPE_CHECKING:
 
 #: Points of D beyond this many robust σ are left out of Var D (hot pixels, cosmic-ray hits).
 CLIP_SIGMA = 5.0
-#: Pixels enter the dark-shot estimate when their expected shot variance is at least this multiple of the read variance.
-SHOT_DOMINANCE = 4.0
+#: Pixels enter the dark-shot estimate when their expected shot variance is at least this multiple of the read
+#: variance (at least half their scatter is shot noise: below that, the read noise's own uncertainty takes over).
+SHOT_DOMINANCE = 1.0
+#: Fewest pixels per subset for the dark-shot estimate.
+MIN_PER_SUBSET = 10
 #: Interleaved pixel subsets of the dark-shot estimate (their spread gives its interval).
 SUBSETS = 10
 LEVEL = 0.95
@@ -169,7 +172,7 @@ def dark_shot_gain(groups: Sequence["GroupFit"], gain_prior: float) -> GainEstim
     ``gain_prior`` only selects the shot-noise-dominated pixels (expected shot variance ≥
     :data:`SHOT_DOMINANCE` × read variance); the estimate does not depend on it otherwise.
     """
-    esq, read_part, shot, median_ratio, dof = [], [], [], [], []
+    esq, read_part, shot, dof = [], [], [], []
     for grp in groups:
         if grp.residual_sq is None or grp.shot_charge is None:
             continue
@@ -183,32 +186,27 @@ def dark_shot_gain(groups: Sequence["GroupFit"], gain_prior: float) -> GainEstim
         esq.append(grp.residual_sq[sel])
         read_part.append(read[sel])
         shot.append(grp.shot_charge[sel])
-        nus = nu[sel]
-        dof.append(nus)
-        median_ratio.append(stats.chi2.median(nus) / nus)
+        dof.append(nu[sel])
     if not esq:
         return None
-    e, rp, sh, m, nu_all = (np.concatenate(x) for x in (esq, read_part, shot, median_ratio, dof))
-    if e.size < 20 * SUBSETS:
+    e, rp, sh, nu_all = (np.concatenate(x) for x in (esq, read_part, shot, dof))
+    if e.size < MIN_PER_SUBSET * SUBSETS:
         return None
-    whole = _solve_gain(e, rp, sh, m)
-    parts = [_solve_gain(e[s::SUBSETS], rp[s::SUBSETS], sh[s::SUBSETS], m[s::SUBSETS]) for s in range(SUBSETS)]
+    whole = _solve_gain(e, rp, sh)
+    parts = [_solve_gain(e[s::SUBSETS], rp[s::SUBSETS], sh[s::SUBSETS]) for s in range(SUBSETS)]
     parts = [p for p in parts if math.isfinite(p)]
     _, ci = _t_interval(parts)
     return GainEstimate("dark signal's shot noise (pixels' scatter about their lines)", whole, ci, parts,
                         float(np.median(sh / nu_all)), int(e.size),
-                        [f"{e.size} pixels whose expected scatter is mostly shot noise; interval from "
+                        [f"{e.size} pixels whose expected scatter is at least half shot noise; interval from "
                          f"{SUBSETS} interleaved subsets"])
 
 
-def _solve_gain(esq: np.ndarray, read: np.ndarray, shot: np.ndarray, median_ratio: np.ndarray) -> float:
-    from scipy.optimize import brentq
+def _solve_gain(esq: np.ndarray, read: np.ndarray, shot: np.ndarray) -> float:
+    """g from E[Σe²] = read + shot/g summed over pixels: g = Σ shot / (Σ Σe² − Σ read).
 
-    def excess(log_g: float) -> float:
-        expected = read + shot / math.exp(log_g)
-        return float(np.median(esq / (expected * median_ratio))) - 1.0
-
-    lo, hi = math.log(1e-3), math.log(1e3)
-    if excess(lo) * excess(hi) > 0:
-        return float("nan")
-    return math.exp(brentq(excess, lo, hi, xtol=1e-6))
+    Sums, not medians: under shot noise a pixel's residual sum of squares is a weighted sum of χ²₁ variables
+    dominated by its long exposures, whose median falls below the χ²_ν median — the mean is exact.
+    """
+    excess = float(esq.sum() - read.sum())
+    return float(shot.sum()) / excess if excess > 0 else float("nan")

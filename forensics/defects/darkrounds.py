@@ -69,6 +69,7 @@ class FrameStats:
 
     local: int
     common_residual: float
+    residual_sigma: float
     dark_level: float
     noise_ratio: float
     frame_read_noise: float | None
@@ -141,6 +142,9 @@ def diagnose_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, floa
         y, e, z, valid = _frame_z(state, group, local, path, t)
         kept = valid & (z <= state.noise.k)
         level = float(np.median(y[kept] - fit["offset"][kept])) if kept.any() else math.nan
+        ek = e[kept]
+        centre = float(np.median(ek)) if ek.size else math.nan
+        sigma = 1.4826 * float(np.median(np.abs(ek - centre))) if ek.size else math.nan
         zk = z[kept]
         med_z = float(np.median(zk)) if zk.size else math.nan
         ratio = 1.4826 * float(np.median(np.abs(zk - med_z))) if zk.size else math.nan
@@ -151,8 +155,7 @@ def diagnose_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, floa
                 scaled = e[kept] / np.sqrt(q)
             scaled = scaled[np.isfinite(scaled)]
             frame_rn = 1.4826 * float(np.median(np.abs(scaled - np.median(scaled)))) if scaled.size else None
-        out.append(FrameStats(local, float(np.median(e[kept])) if kept.any() else math.nan, level, ratio, frame_rn,
-                              int(valid.sum())))
+        out.append(FrameStats(local, centre, sigma, level, ratio, frame_rn, int(kept.sum())))
         ev = np.where(valid, e, 0).astype(np.float64)
         esq += ev * ev
     return group, out, esq

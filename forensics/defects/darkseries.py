@@ -364,6 +364,7 @@ class FrameReport:
     used: bool
     reason: str = ""
     common_residual: float | None = None
+    level_deviation: float | None = None
     dark_level: float | None = None
     noise_ratio: float | None = None
     read_noise: float | None = None
@@ -386,7 +387,8 @@ class GroupFit:
 
     ``rate`` is in ADU/s at ``temperature_c`` (the effective temperature, ± ``temperature_se``), ``offset`` in
     ADU; ``rate_se`` the standard error of each rate; ``noise_ratio`` each pixel's residual scatter against the
-    noise model (1 when it follows it).
+    noise model (1 when it follows it); ``misfit`` the pixels that do not follow a line; ``cosmic_pixels`` and
+    ``cosmic_frames`` the samples left out as cosmic-ray hits (flat pixel index, frame index in the plan).
     """
 
     label: str
@@ -417,6 +419,8 @@ class GroupFit:
     exposure_weights: list[float] = field(default_factory=list)
     residual_sq: np.ndarray | None = field(default=None, repr=False)
     shot_charge: np.ndarray | None = field(default=None, repr=False)
+    cosmic_pixels: np.ndarray | None = field(default=None, repr=False)
+    cosmic_frames: np.ndarray | None = field(default=None, repr=False)
 
     def rate_map(self) -> np.ndarray:
         return self.rate.reshape(self.shape)
@@ -656,6 +660,12 @@ def _summarise(plan: SeriesPlan, sums: list[GroupSums], robust: Any, exposures: 
                             "resolution is unknown and its step is not part of the temperature's uncertainty")
         sat_count = np.bincount(s.drop_frame, minlength=len(members))
         out_count = np.bincount(robust.drops[g][1], minlength=len(members))
+        stats = [robust.stats.get((g, local)) for local in range(len(members))]
+        residuals = np.array([np.nan if fs is None else fs.common_residual for fs in stats])
+        # a median over N pixels of residuals of spread σ_e has sampling error 1.2533·σ_e/√N
+        sampling = np.array([np.nan if fs is None or not fs.tested else 1.2533 * fs.residual_sigma / math.sqrt(fs.tested)
+                             for fs in stats])
+        deviation, deviation_se = frame_deviations(residuals, t, jitter, sampling)
         for local, i in enumerate(members):
             rep = index_of[i]
             fs = robust.stats.get((g, local))
@@ -665,17 +675,59 @@ def _summarise(plan: SeriesPlan, sums: list[GroupSums], robust: Any, exposures: 
                 rep.common_residual, rep.noise_ratio = fs.common_residual, fs.noise_ratio
                 rep.dark_level = fs.dark_level
                 rep.read_noise, rep.tested = fs.frame_read_noise, fs.tested
-            rep.problems = _frame_problems(rep, jitter)
+            rep.level_deviation = None if not math.isfinite(deviation[local]) else float(deviation[local])
+            rep.problems = _frame_problems(rep, float(deviation_se[local]))
         groups.append(_group_fit(plan, g, s, robust, t, noise, [index_of[i] for i in members]))
     return groups, reports
 
 
-def _frame_problems(rep: FrameReport, jitter: float) -> list[str]:
+def frame_deviations(residuals: np.ndarray, t: np.ndarray, jitter: float, sampling: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's common-mode residual against the line through the other good frames', and its SE.
+
+    A frame whose offset jumped pulls every pixel's line, and so every other frame's residual; against the line of
+    the others it stands out by the whole jump.  Frames are tested one at a time, the worst first, and a frame
+    beyond :data:`FRAME_Z` SEs leaves the set the others are compared with (so one bad frame does not make its
+    neighbours look bad).  The SE combines the offset jitter σ_o (leverage included) with each frame's median
+    sampling error.
+    """
+    n = residuals.size
+    good = np.isfinite(residuals) & np.isfinite(sampling)
+    while True:
+        out, se = _deviations(residuals, t, jitter, sampling, good)
+        z = np.where(good & (se > 0), np.abs(out) / np.where(se > 0, se, 1.0), 0.0)
+        worst = int(np.argmax(z)) if n else 0
+        if n == 0 or z[worst] <= FRAME_Z or good.sum() <= 4:
+            return out, se
+        good[worst] = False
+
+
+def _deviations(residuals: np.ndarray, t: np.ndarray, jitter: float, sampling: np.ndarray, good: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    n = residuals.size
+    out, se = np.full(n, np.nan), np.full(n, np.nan)
+    for f in range(n):
+        others = good.copy()
+        others[f] = False
+        if not np.isfinite(residuals[f]) or others.sum() < 3:
+            continue
+        x, y, w = t[others], residuals[others], sampling[others]
+        mean_x = x.mean()
+        sxx = float(((x - mean_x) ** 2).sum())
+        slope = float(((x - mean_x) * (y - y.mean())).sum() / sxx) if sxx > 0 else 0.0
+        leverage = 1 / others.sum() + ((t[f] - mean_x) ** 2 / sxx if sxx > 0 else 0.0)
+        out[f] = residuals[f] - (y.mean() + slope * (t[f] - mean_x))
+        se[f] = math.sqrt((jitter ** 2 + float(np.mean(w ** 2))) * leverage + jitter ** 2 + sampling[f] ** 2)
+    return out, se
+
+
+def _frame_problems(rep: FrameReport, deviation_se: float) -> list[str]:
     problems = []
-    if rep.common_residual is not None and jitter > 0 and abs(rep.common_residual) > FRAME_Z * jitter:
-        per_s = f" ({rep.common_residual / rep.exposure_s:+.3g} ADU/s)" if rep.exposure_s > 0 else ""
-        problems.append(f"median level {rep.common_residual:+.2f} ADU{per_s} off the fitted lines, "
-                        f"{abs(rep.common_residual) / jitter:.1f}× the biases' offset jitter σ_o = {jitter:.2f} ADU")
+    dev = rep.level_deviation
+    if dev is not None and deviation_se > 0 and abs(dev) > FRAME_Z * deviation_se:
+        per_s = f" ({dev / rep.exposure_s:+.3g} ADU/s)" if rep.exposure_s > 0 else ""
+        problems.append(f"median level {dev:+.2f} ADU{per_s} off the line of the other frames, "
+                        f"{abs(dev) / deviation_se:.1f}× its standard error (offset jitter σ_o from the biases)")
     if rep.noise_ratio is not None and math.isfinite(rep.noise_ratio) and abs(rep.noise_ratio - 1) > NOISE_TOLERANCE:
         problems.append(f"noise {rep.noise_ratio:.2f}× the read + shot noise model")
     if rep.tested and rep.outliers > OUTLIER_SHARE * rep.tested:
@@ -725,5 +777,6 @@ def _group_fit(plan: SeriesPlan, g: int, s: GroupSums, robust: Any, t: np.ndarra
         offset=a.astype(np.float32), rate=r.astype(np.float32), rate_se=np.sqrt(var_r).astype(np.float32),
         noise_ratio=ratio.astype(np.float32), used=np.nan_to_num(line.n).astype(np.uint16), constant=(s.lo == s.hi),
         misfit=robust.misfit[g], exposure_weights=weights.tolist(), residual_sq=esq,
-        shot_charge=np.where(np.isfinite(shot), shot, np.nan),
+        shot_charge=np.where(np.isfinite(shot), shot, np.nan), cosmic_pixels=robust.drops[g][0],
+        cosmic_frames=np.asarray(members)[robust.drops[g][1]] if robust.drops[g][1].size else np.zeros(0, int),
     )
