@@ -29,7 +29,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "PCE_THRESHOLD", "QUERY_SIGMA", "MatchScore", "PceResult", "Query", "SetMatch", "match_set", "ncc",
             "pce", "prepare_query", "score_matrix", "score_pair", "score_query",
         ],
-        "residual": ["median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft", "zero_mean_cfa"],
+        "residual": ["cfa_residual_and_grey", "median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft", "zero_mean_cfa"],
         "samedevice": [
             "EerVerdict", "SameDeviceResult", "SetPlan", "SetSummary", "eer_verdict",
             "expected_eer_ci_width", "plan_set", "same_device",
