@@ -25,6 +25,7 @@ from forensics._shared.progress import Progress, no_progress
 from forensics.defects.darklaw import TemperatureLaw, can_fit, fit_temperature_law
 from forensics.defects.darkseries import (
     DARK_TYPES,
+    LIGHT_TYPES,
     K_GROW,
     K_OUTLIER,
     ROUNDS,
@@ -400,11 +401,15 @@ def _number(text: Any) -> float | None:
 
 
 def is_dark_series(ds: Any) -> bool:
-    """Whether a dataset holds a dark series: biases or darks at two exposure times or more, one with light-free
-    exposure > 0 (frame types from the FITS headers, a manifest ``frame_type``, or ``subject`` = dark)."""
+    """Whether a dataset is a dark series: every frame has a frame type (FITS IMAGETYP, a manifest ``frame_type``, or
+    a ``subject`` of dark, bias, flat or light), and its biases and darks span two exposure times, one above 0.
+
+    Photographs and mixed folders are not: their frames have no frame type."""
     try:
         frames = series_frames(ds)
     except InputError:
+        return False
+    if not frames or any(f.frame_type not in DARK_TYPES + LIGHT_TYPES for f in frames):
         return False
     exposures = {f.exposure_s for f in frames if f.frame_type in DARK_TYPES and f.exposure_s is not None}
     return len(exposures) >= 2 and any(e > 0 for e in exposures)
