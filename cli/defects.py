@@ -263,6 +263,9 @@ def dark_summary(root: Any, result: Any) -> str:
         temp = "?" if g.temperature_c is None else f"{g.temperature_c:+.2f} ± {g.temperature_se:.2f}"
         lines.append(f"{g.label:<22} {temp:>14} {len(g.frames):>6} {g.bias_level:>11.1f} {g.read_noise:>10.2f} "
                      f"{g.median_rate:>12.4g} [{lo:.4g}, {hi:.4g}] {g.outliers:>11} {int(g.misfit.sum()):>7}")
+    for row in result.at_set_points:
+        lines.append(f"  median rate at the set point {row['set_temperature_c']:+.1f} °C: "
+                     f"{row['median_rate_adu_per_s']:.4g} [{row['ci'][0]:.4g}, {row['ci'][1]:.4g}] ADU/s")
     gains = [f"used {fit.gain_used:.3g} ({fit.gain_source})"]
     for key, label in (("flat_pairs", "flat pairs"), ("dark_shot_noise", "dark shot noise")):
         if key in fit.gain:

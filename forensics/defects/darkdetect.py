@@ -44,6 +44,7 @@ from forensics.defects.detection import (
     load_mask,
     robust_normal,
 )
+from forensics.io.dataset import is_dark_subject
 from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.stats.counts import LEVEL, garwood
 
@@ -108,6 +109,7 @@ class DarkDetectionResult(DetectionResult):
     count_law_range: tuple[int, int] | None = None
     typical_rate_se: float = float("nan")
     group_hist: list[dict[str, Any]] = field(default_factory=list)
+    at_set_points: list[dict[str, Any]] = field(default_factory=list)
     rate_se: np.ndarray | None = field(default=None, repr=False)
     group_rates: list[np.ndarray] = field(default_factory=list, repr=False)
 
@@ -129,6 +131,7 @@ class DarkDetectionResult(DetectionResult):
                     "typical_rate_se": self.typical_rate_se,
                     "law": self.law.to_dict() if self.law else None, "law_source": self.law_source,
                     "series": self.series.to_dict() if self.series else None,
+                    "median_rates_at_set_points": self.at_set_points,
                     "group_histograms": self.group_hist})
         return out
 
@@ -201,8 +204,31 @@ def detect_dark(fit: DarkSeriesFit, settings: DarkSettings = DarkSettings(), lev
         mask=region, full_scale=None, t_ref=t_ref, threshold_rate=float(threshold), law=law, law_source=source,
         series=fit, settings=settings, count_ci=garwood(n_hot, level), count_law_range=law_range,
         typical_rate_se=typical_se, group_hist=_group_histograms(fit, carried, region_fitted, threshold),
+        at_set_points=set_point_medians(fit, law, level),
         rate_se=se.reshape(shape), group_rates=carried)
     return result
+
+
+def set_point_medians(fit: DarkSeriesFit, law: TemperatureLaw | None, level: float = LEVEL) -> list[dict[str, Any]]:
+    """Each group's median rate carried from its effective temperature to its set point, with an interval that adds
+    the effective temperature's uncertainty and the law's to the median's own."""
+    if law is None:
+        return []
+    z = float(stats.norm.ppf(0.5 + level / 2))
+    out = []
+    for g in fit.groups:
+        if g.set_temperature_c is None or g.temperature_c is None:
+            continue
+        factor = float(law.factor(g.median_rate, g.temperature_c, g.set_temperature_c))
+        value = g.median_rate * factor
+        beta = float(law.beta(g.median_rate))
+        beta_se = law.bulk.beta_se  # the median pixel is the bulk's
+        dt = g.set_temperature_c - g.temperature_c
+        se = math.sqrt((g.median_rate_se * factor) ** 2 + (value * math.log(2) * beta * g.temperature_se) ** 2
+                       + (value * math.log(2) * dt * beta_se) ** 2)
+        out.append({"group": g.label, "set_temperature_c": g.set_temperature_c, "median_rate_adu_per_s": value,
+                    "ci": [value - z * se, value + z * se], "from_temperature_c": g.temperature_c})
+    return out
 
 
 def _law_for(fit: DarkSeriesFit, settings: DarkSettings) -> tuple[TemperatureLaw | None, str]:
@@ -351,43 +377,23 @@ def _hot_image(det: DetectionResult) -> np.ndarray:
 
 # =========================================================================== datasets
 def series_frames(ds: Any) -> list[SeriesFrame]:
-    """The frames of a dataset as a series: conditions from the manifest where given, else the FITS header.
+    """The frames of a dataset as a series, with the conditions its manifest or FITS headers give
+    (:mod:`forensics.io.dataset`: a manifest overrides the header).
 
-    The frame type comes from a manifest column ``frame_type``, else the header's IMAGETYP, else the
-    ``subject``: ``dark`` (no light) is a bias at exposure 0 and a dark otherwise.
+    The frame type is the ``frame_type`` column (FITS: IMAGETYP), else the ``subject``: ``dark`` (no light) is a
+    bias at exposure 0 and a dark otherwise.
     """
-    from forensics.io.fits import is_fits, read_fits_header
-
     out = []
     for frame in ds.frames:
-        header = read_fits_header(frame.path) if is_fits(frame.path) else None
-        extra = getattr(frame, "extra", {}) or {}
-        exposure = _manifest_number(frame, "_exposure_s")
-        if exposure is None:
-            exposure = header.exposure_s if header else frame.exposure_s
-        temperature = frame.temperature_c if frame.temperature_c is not None else (header.temperature_c if header else None)
-        setpoint = _number(extra.get("set_temperature_c"))
-        if setpoint is None and header:
-            setpoint = header.set_temperature_c
-        kind = (extra.get("frame_type") or "").strip().lower() or (header.frame_type if header else None)
+        exposure = frame.exposure_s
+        kind = str(frame.get("frame_type") or "").strip().lower()
         if not kind and frame.subject:
-            from forensics.io.dataset import is_dark_subject
-
-            kind = ("bias" if exposure == 0 else "dark") if is_dark_subject(frame.subject) else frame.subject.lower()
-        captured = _manifest_number(frame, "_captured")
-        if captured is None and header is not None and header.captured is not None:
-            from forensics.io.dataset import decimal_year
-
-            captured = decimal_year(header.captured)
+            kind = "dark" if is_dark_subject(frame.subject) else frame.subject.strip().lower()
         if kind == "dark" and exposure == 0:
             kind = "bias"
-        out.append(SeriesFrame(str(frame.path), kind or "", exposure, temperature, setpoint, captured))
+        out.append(SeriesFrame(str(frame.path), kind, exposure, frame.get("temperature_c"),
+                               _number(frame.get("set_temperature_c")), frame.captured))
     return out
-
-
-def _manifest_number(frame: Any, attr: str) -> float | None:
-    value = getattr(frame, attr, None)
-    return None if value is None else float(value)
 
 
 def _number(text: Any) -> float | None:

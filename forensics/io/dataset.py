@@ -8,7 +8,7 @@ The manifest has a header row and the columns
                the manifest has none and the file has a serial)
 ``captured``   ISO-8601 date or datetime (``2009-07-01``, ``2009-07-01T12:30:00``)
                or a decimal year (``2009.5``)
-``exposure_s`` exposure time in seconds
+``exposure_s`` exposure time in seconds (0 for a bias frame)
 ``iso``        ISO sensitivity
 ``temperature_c`` sensor or ambient temperature in °C
 ``subject``    what the frame shows (free text); ``dark`` (any case) means the frame
@@ -23,8 +23,13 @@ The manifest has a header row and the columns
 
 Any other column is kept in :attr:`Frame.extra`.  A value missing from the
 manifest (or every value, when there is no manifest) is taken from the image's
-EXIF where the file has it.  Without a manifest, every image file directly in
-the folder is used, in name order.
+EXIF where the file has it, or from a FITS frame's header: ``captured`` from
+DATE-OBS, ``exposure_s`` from EXPTIME (0 for a bias), ``temperature_c`` from the
+measured CCD-TEMP, ``subject`` from IMAGETYP (bias and dark frames are ``dark``,
+flats ``flat``, lights ``light``), ``device`` from INSTRUME and its serial, and
+the further columns ``frame_type`` (bias, dark, flat, light), ``set_temperature_c``
+(SET-TEMP) and ``gain_e_per_adu`` (EGAIN).  Without a manifest, every image file
+directly in the folder is used, in name order.
 
 Frames are loaded lazily: iterating over a dataset never holds more than one
 image in memory.
@@ -43,12 +48,16 @@ from typing import Any
 import numpy as np
 
 from forensics._shared.errors import InputError
+from forensics.io.fits import is_fits
 from forensics.io.images import IMAGE_EXTENSIONS, ImageInfo, read_image, read_info
 from forensics._shared.progress import Progress, no_progress
 
 MANIFEST = "manifest.csv"
 #: The ``subject`` of frames taken without light (compared case-insensitively).
 DARK_SUBJECT = "dark"
+#: A FITS frame type (IMAGETYP) as a ``subject``: biases and darks are both taken without light (a bias is a dark
+#: frame of exposure 0, ``exposure_s`` = 0); the column ``frame_type`` keeps them apart.
+FRAME_SUBJECTS = {"bias": DARK_SUBJECT, "dark": DARK_SUBJECT, "flat": "flat", "light": "light"}
 #: The optional manifest column that tells light levels apart (an extra column: kept in :attr:`Frame.extra`).
 LIGHT_COLUMN = "light"
 STANDARD_COLUMNS = ("file", "device", "captured", "exposure_s", "iso", "temperature_c", "subject")
@@ -158,11 +167,28 @@ class Frame:
                 self._exposure_s = info.exposure_s
             if self._iso is None:
                 self._iso = info.iso
-            if self.device is None and info.serial:  # a body serial identifies a device; make/model alone do not
+            if self.device is None and info.extra.get("device"):  # FITS: INSTRUME and its serial
+                self.device = info.extra["device"]
+            elif self.device is None and info.serial:  # a body serial identifies a device; make/model alone do not
                 self.device = f"{info.make or ''} {info.model or ''} #{info.serial}".strip()
+            if "frame_type" in info.extra:
+                self._take_fits(info.extra)
             self._exif, self._exif_done = info, True
         assert self._exif is not None
         return self._exif
+
+    def _take_fits(self, extra: dict[str, Any]) -> None:
+        """A FITS header's conditions where the manifest gives none: the measured temperature, the frame type as the
+        ``subject`` (bias and dark frames are ``dark``: taken without light) and as ``frame_type``, the set point
+        and the gain as further columns."""
+        if self.temperature_c is None and extra.get("temperature_c") is not None:
+            self.temperature_c = float(extra["temperature_c"])
+        kind = extra.get("frame_type")
+        if self.subject is None and kind:
+            self.subject = FRAME_SUBJECTS.get(kind, kind)
+        for column in ("frame_type", "set_temperature_c", "gain_e_per_adu"):
+            if not self.extra.get(column) and extra.get(column) is not None:
+                self.extra[column] = str(extra[column])
 
     def _value(self, name: str) -> float | None:
         if getattr(self, name) is None and not self._exif_done:
@@ -192,10 +218,12 @@ class Frame:
         """A field by manifest column name (standard or extra)."""
         if name in ("captured", "exposure_s", "iso"):
             return getattr(self, name)
-        if name == "device" and self.device is None and not self._exif_done:
+        if name in ("device", "subject", "temperature_c") and getattr(self, name) is None and not self._exif_done:
             self.info()
         if name in ("file", "device", "subject", "temperature_c"):
             return getattr(self, name)
+        if name not in self.extra and not self._exif_done:
+            self.info()  # a FITS header's further columns (frame_type, set_temperature_c, gain_e_per_adu)
         return self.extra.get(name)
 
 
@@ -297,9 +325,11 @@ class Dataset:
 
 
 def list_images(folder: Path) -> list[Path]:
-    """Image files directly in ``folder`` (by extension), hidden files skipped, in name order."""
+    """Image files directly in ``folder`` (by extension; FITS by its whole suffix, e.g. ``.fits.fz``), hidden files
+    skipped, in name order."""
     return sorted(
-        p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
+        p for p in folder.iterdir()
+        if p.is_file() and not p.name.startswith(".") and (p.suffix.lower() in IMAGE_EXTENSIONS or is_fits(p))
     )
 
 
@@ -325,8 +355,12 @@ def open_dataset(folder: str | os.PathLike, allow_outside: bool = False) -> Data
     if not manifest.exists():
         paths = list_images(root)
         if not paths:
-            raise InputError(f"{root}: no images found; add PNG/TIFF/JPEG/BMP/raw files or a manifest.csv")
-        return Dataset(root, [Frame(path=p, file=p.name) for p in paths], has_manifest=False)
+            raise InputError(f"{root}: no images found; add PNG/TIFF/JPEG/BMP/raw/FITS files or a manifest.csv")
+        frames = [Frame(path=p, file=p.name) for p in paths]
+        for frame in frames:
+            if is_fits(frame.path):  # the header is the manifest: its conditions are read now (no pixels decoded)
+                frame.info()
+        return Dataset(root, frames, has_manifest=False)
     return Dataset(root, _read_manifest(root, manifest, allow_outside), has_manifest=True)
 
 
@@ -368,7 +402,10 @@ def _frame_from_row(root: Path, manifest: Path, row_number: int, row: dict[str, 
             numbers[column] = float(text)
         except ValueError:
             raise InputError(f"{where}: field '{column}' = '{text}' is not a number") from None
-        if not math.isfinite(numbers[column]) or (column != "temperature_c" and numbers[column] <= 0):  # type: ignore[operator]
+        value = numbers[column]
+        # an exposure of 0 is a bias frame; an ISO must be positive; a temperature may be anything
+        out_of_range = (column == "iso" and value <= 0) or (column == "exposure_s" and value < 0)  # type: ignore[operator]
+        if not math.isfinite(value) or out_of_range:  # type: ignore[arg-type]
             raise InputError(f"{where}: field '{column}' = '{text}' is out of range")
     captured = None
     if values.get("captured"):

@@ -2,7 +2,8 @@
 
 Ordinary images (PNG, TIFF, JPEG, BMP, …) are read through OpenImageIO in
 their native dtype; raw camera files (DNG, CR2, NEF, …) through rawpy as the
-CFA mosaic with its black and white levels.  Writing is atomic (temporary
+CFA mosaic with its black and white levels; FITS frames (``.fits``, ``.fit``,
+``.fts``, compressed ``.fits.fz``) through astropy (:mod:`forensics.io.fits`).  Writing is atomic (temporary
 file, then rename) and refuses to replace an existing file unless ``force``.
 """
 from __future__ import annotations
@@ -138,15 +139,35 @@ def _spec_info(path: Path, spec: Any) -> ImageInfo:
     )
 
 
+def fits_info(path: str | os.PathLike) -> ImageInfo:
+    """A FITS frame's :class:`ImageInfo`: size, dtype, DATE-OBS, EXPTIME, INSTRUME and serial, and in ``extra`` the
+    conditions only FITS carries (``temperature_c``, ``set_temperature_c``, ``frame_type``, ``gain_e_per_adu``,
+    ``binning``, ``device``, ``warnings``; :mod:`forensics.io.fits`)."""
+    from forensics.io.fits import read_fits_header
+
+    header = read_fits_header(path)
+    extra = {"temperature_c": header.temperature_c, "set_temperature_c": header.set_temperature_c,
+             "frame_type": header.frame_type, "gain_e_per_adu": header.gain_e_per_adu,
+             "binning": list(header.binning) if header.binning else None, "device": header.device,
+             "warnings": list(header.warnings)}
+    return ImageInfo(path=Path(path), width=header.shape[1], height=header.shape[0], channels=1, dtype=header.dtype,
+                     captured=header.captured, exposure_s=header.exposure_s, model=header.instrument,
+                     serial=header.serial, extra=extra)
+
+
 def read_info(path: str | os.PathLike) -> ImageInfo:
-    """Read a file's size, dtype and capture metadata (EXIF) without decoding its pixels.
+    """Read a file's size, dtype and capture metadata (EXIF; a FITS frame's header) without decoding its pixels.
 
     Raises
     ------
     InputError
         If the file is missing or is not a readable image.
     """
+    from forensics.io.fits import is_fits
+
     path = Path(path)
+    if is_fits(path):  # FITS needs astropy: OpenImageIO ignores BZERO
+        return fits_info(path)
     if is_raw(path):
         return read_raw(path).info
     inp = _open_input(path)
@@ -167,7 +188,11 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     InputError
         If the file is missing, corrupt or truncated; the message names the file.
     """
+    from forensics.io.fits import is_fits, read_fits
+
     path = Path(path)
+    if is_fits(path):
+        return read_fits(path).data
     if is_raw(path):
         return read_raw(path).mosaic
     inp = _open_input(path)

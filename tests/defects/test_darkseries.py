@@ -20,15 +20,15 @@ from forensics.defects.darkdetect import DarkSettings, compare_counts, dark_epoc
 from forensics.defects.darklaw import TemperatureLaw, fit_temperature_law
 from forensics.defects.darkseries import fit_dark_series, plan_series
 from forensics.fixtures.darkseries import DarkSeriesDesign, make_dark_series
-from forensics.io.dataset import Dataset, Frame
+from forensics.io.dataset import open_dataset
 from forensics.sensor.catalogue import PARTIAL
 
 DESIGN = DarkSeriesDesign(n_flats=10, unsettled=True, offset_jump=15.0, hot_fraction=0.05)
 
 
-def dataset(folder: Path) -> Dataset:
+def dataset(folder: Path):
     """The folder's FITS frames as a dataset (no manifest: the headers say everything)."""
-    return Dataset(folder, [Frame(path=p, file=p.name) for p in sorted(folder.glob("*.fits"))])
+    return open_dataset(folder)
 
 
 @pytest.fixture(scope="module")

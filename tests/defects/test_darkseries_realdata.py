@@ -17,15 +17,13 @@ import pytest
 from forensics.defects.darkdetect import DarkSettings, compare_counts, detect_dark, series_frames
 from forensics.defects.darklaw import fit_temperature_law
 from forensics.defects.darkseries import fit_dark_series, plan_series
-from forensics.io.dataset import Dataset, Frame
+from forensics.io.dataset import open_dataset
 from tests.conftest import shared_or_skip
 
 
 @pytest.fixture(scope="module")
 def fit():
-    folder = shared_or_skip("sbig-stl1001e-2017")
-    frames = [Frame(path=p, file=p.name) for p in sorted(folder.glob("*.FIT"))]
-    return fit_dark_series(plan_series(series_frames(Dataset(folder, frames))))
+    return fit_dark_series(plan_series(series_frames(open_dataset(shared_or_skip("sbig-stl1001e-2017")))))
 
 
 def test_every_frame_used(fit):
