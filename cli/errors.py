@@ -47,7 +47,7 @@ _OS_REASONS = {
     errno.EACCES: "permission denied; check the file's permissions",
     errno.EPERM: "operation not permitted; check the file's permissions",
     errno.ENOENT: "no such file or folder",
-    errno.EEXIST: "already exists",
+    errno.EEXIST: "already exists (a file where a folder was expected?)",
     errno.EROFS: "read-only file system; write the output elsewhere",
     errno.EMFILE: "too many open files; raise the limit (ulimit -n) or use fewer --workers",
     errno.ENFILE: "too many open files on this system",
