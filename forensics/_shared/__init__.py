@@ -18,6 +18,7 @@ from forensics._shared.errors import ForensicsError, InputError, UsageError
 from forensics._shared.filters import median_filter
 from forensics._shared.jsonsafe import dumps, to_jsonable
 from forensics._shared.limits import age_limit, memory_limit, pixel_limit, require_ages, require_memory, require_pixels
+from forensics._shared.plugins import is_class_spec, load_class
 from forensics._shared.progress import Progress, choose_progress, no_progress, tqdm_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record, spawn
 from forensics._shared.text import printable
@@ -29,6 +30,7 @@ __all__ = [
     "median_filter",
     "dumps", "to_jsonable",
     "age_limit", "memory_limit", "pixel_limit", "require_ages", "require_memory", "require_pixels",
+    "is_class_spec", "load_class",
     "Progress", "choose_progress", "no_progress", "tqdm_progress",
     "RngLike", "as_generator", "keyed_generator", "seed_record", "spawn",
     "printable",
