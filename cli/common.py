@@ -199,11 +199,12 @@ def progress_for(args: argparse.Namespace) -> Progress:
     return choose_progress(quiet=getattr(args, "quiet", False) or getattr(args, "json", False))
 
 
-def say(text: str, stream: TextIO | None = None) -> None:
-    """Write ``text`` and a newline to ``stream`` (default stdout) for a human: untrusted text (file names,
-    manifest fields) is escaped here, so an escape sequence in it cannot act on the terminal."""
+def say(text: str, stream: TextIO | None = None, end: str = "\n") -> None:
+    """Write ``text`` and ``end`` to ``stream`` (default stdout) for a human: the one place where what the
+    command prints is made safe — untrusted text (file names, manifest fields) is escaped, so an escape
+    sequence in it cannot act on the terminal."""
     stream = sys.stdout if stream is None else stream
-    stream.write(printable(text) + "\n")
+    stream.write(printable(text) + end)
 
 
 def emit(args: argparse.Namespace, summary: str | Callable[[], str], payload: dict[str, Any] | Callable[[], dict[str, Any]]) -> None:

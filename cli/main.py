@@ -17,8 +17,6 @@ import warnings
 from collections.abc import Iterator
 
 from forensics import __version__
-from forensics._shared.text import printable
-
 from forensics.cli.common import EXIT_FAILURE, EXIT_USAGE, guard_outputs, say
 from forensics.cli.errors import debug, describe
 
@@ -32,7 +30,7 @@ class Parser(argparse.ArgumentParser):
 
     def _print_message(self, message: str, file=None) -> None:  # noqa: ANN001 - argparse's signature
         if message:
-            (file or sys.stderr).write(printable(message))
+            say(message, file or sys.stderr, end="")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,8 +39,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="What an image sensor leaves in its images: PRNU fingerprints, pixel defects, "
         "sensor ageing, dating, and checking a physical sensor model against measurements.",
         epilog="example:\n  forensics demo --out report\n\nRun 'forensics COMMAND --help' for each command.\n\n"
-               "exit status: 0 done, 1 failed (an internal error: please report it), 2 usage error, 3 bad input "
-               "data or files, 130 interrupted.  FORENSICS_DEBUG=1 shows the traceback of a failure.",
+               "exit status: 0 done, 1 failed (an internal error: please report it; or out of memory),\n"
+               "  2 usage error, 3 bad input data or files, 130 interrupted\n"
+               "environment: FORENSICS_DEBUG=1 shows the traceback of a failure; FORENSICS_MEMORY_LIMIT (e.g. 64G)\n"
+               "  and FORENSICS_MAX_AGES (default 1000) bound what one request may ask for",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"forensics {__version__}")
