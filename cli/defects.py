@@ -11,8 +11,12 @@ from forensics.cli.common import (
     command_parser,
     emit,
     executor_for,
+    finite_float,
     info,
+    nonnegative_float,
+    odd_int,
     open_input,
+    positive_float,
     progress_for,
     warn,
 )
@@ -25,12 +29,14 @@ def add_detection_options(parser: argparse.ArgumentParser) -> None:
                        help="region analysed: centre[:FRACTION] leaves out the centre where the subject usually is "
                             "(default centre = centre:0.5; for a dark series all), auto leaves out textured pixels, "
                             "all, or a mask image (non-zero = analysed)")
-    group.add_argument("--q", type=int, default=9, help="median kernel size, odd (default 9)")
+    group.add_argument("--q", type=odd_int, default=9,
+                       help="median kernel size, odd (default 9); the memory it needs is estimated before the images "
+                            "are read and refused above FORENSICS_MEMORY_LIMIT")
     thr = group.add_mutually_exclusive_group()
-    thr.add_argument("--sigma", type=float, default=None,
+    thr.add_argument("--sigma", type=positive_float, default=None,
                      help="threshold τ = median + SIGMA·1.4826·MAD of d̂ (default 5)")
-    thr.add_argument("--tau", type=float, default=None, help="threshold τ on d̂ in DN, instead of --sigma")
-    group.add_argument("--stuck-tolerance", type=float, default=0.0,
+    thr.add_argument("--tau", type=positive_float, default=None, help="threshold τ on d̂ in DN, instead of --sigma")
+    group.add_argument("--stuck-tolerance", type=nonnegative_float, default=0.0,
                        help="largest max − min (DN) still 'the same value in every image' (default 0; raise for "
                             "compressed or noisy data)")
 
@@ -39,19 +45,19 @@ def add_dark_options(parser: argparse.ArgumentParser, save_law: bool = False) ->
     """Options of a dark-frame series (biases and darks at several exposures; shared with ``forensics date``)."""
     group = parser.add_argument_group(
         "dark-frame series (FITS biases and darks, or a manifest with subject 'dark': used automatically)")
-    group.add_argument("--rate-threshold", type=float, default=None, metavar="ADU/s",
+    group.add_argument("--rate-threshold", type=positive_float, default=None, metavar="ADU/s",
                        help="hot pixel: dark rate above this many ADU/s at --t-ref (default: 5 robust σ above the "
                             "median, a threshold of this series only)")
-    group.add_argument("--t-ref", type=float, default=None, metavar="°C",
+    group.add_argument("--t-ref", type=finite_float, default=None, metavar="°C",
                        help="reference temperature of the rates and the threshold (default: the coldest set point; "
                             "one temperature: the series' own)")
     law = group.add_mutually_exclusive_group()
     law.add_argument("--law", metavar="LAW.json", default=None,
                      help="temperature law saved by 'defects detect --save-law' (default: fitted on the series when "
                           "it spans two temperatures)")
-    law.add_argument("--doubling", type=float, default=None, metavar="°C",
+    law.add_argument("--doubling", type=positive_float, default=None, metavar="°C",
                      help="one doubling temperature T_d for every pixel instead of a fitted law")
-    group.add_argument("--gain", type=float, default=None, metavar="e-/ADU",
+    group.add_argument("--gain", type=positive_float, default=None, metavar="e-/ADU",
                        help="conversion gain of the noise model (default: from flat pairs in the set, else EGAIN)")
     if save_law:
         group.add_argument("--save-law", metavar="LAW.json", default=None,
@@ -97,7 +103,7 @@ def register(sub) -> None:
     add_input_options(det)
     add_execution_options(det)
     add_output_options(det)
-    det.set_defaults(handler=run_detect)
+    det.set_defaults(handler=run_detect, inputs=("set", "--mask"), outputs=("--report",))
 
     gro = command_parser(
         inner, "growth", "estimate defect growth rates from sets of one device taken at different dates",
@@ -113,7 +119,7 @@ def register(sub) -> None:
     add_input_options(gro)
     add_execution_options(gro)
     add_output_options(gro)
-    gro.set_defaults(handler=run_growth)
+    gro.set_defaults(handler=run_growth, inputs=("sets", "--mask"), outputs=("--output", "--report"))
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
 

@@ -21,6 +21,7 @@ from forensics.cli.common import (
     progress_for,
     warn,
 )
+from forensics.cli.common import finite_float, positive_float  # option types: values checked where parsed
 
 
 def register(sub) -> None:
@@ -43,12 +44,12 @@ def register(sub) -> None:
     build.add_argument("--region", default="full",
                        help="'full' (default), 'center:N' (centred N×N crop), or 'corners' (the paper's four "
                             "128×128 corner patches; 'corners:N' for N×N)")
-    build.add_argument("--sigma", type=float, default=3.0,
+    build.add_argument("--sigma", type=positive_float, default=3.0,
                        help="noise level of the wavelet denoiser on an 8-bit scale (default 3, the reference's)")
     add_input_options(build)
     add_execution_options(build)
     add_output_options(build, report=False)
-    build.set_defaults(handler=run_build)
+    build.set_defaults(handler=run_build, inputs=("set",), outputs=("--output",))
 
     match = command_parser(
         inner, "match", "score each image of a set against a fingerprint, with a decision",
@@ -60,16 +61,16 @@ def register(sub) -> None:
     match.add_argument("fingerprint", metavar="FP", help="fingerprint file written by 'fingerprint build'")
     match.add_argument("set", metavar="SET", help="dataset folder of the images to score")
     match.add_argument("--metric", choices=["pce", "ncc"], default="pce", help="score (default pce)")
-    match.add_argument("--threshold", type=float, default=None,
+    match.add_argument("--threshold", type=finite_float, default=None,
                        help="decide 'match' when the score reaches it (default: 60 for PCE, none for NCC)")
     match.add_argument("--shift-range", type=_shift_range, default=0, metavar="R",
                        help="PCE only: search shifts up to ±R pixels (default 0: zero shift; 'all': every circular "
                             "shift, which inflates non-matching PCE)")
-    match.add_argument("--sigma", type=float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
+    match.add_argument("--sigma", type=positive_float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
     add_input_options(match)
     add_execution_options(match)
     add_output_options(match)
-    match.set_defaults(handler=run_match)
+    match.set_defaults(handler=run_match, inputs=("fingerprint", "set"), outputs=("--report",))
     _register_db(inner)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
@@ -109,7 +110,7 @@ def _register_db(inner: Any) -> None:
     add.add_argument("--serial", metavar="S", help="body serial number (only with one FP; default: from EXIF)")
     add.add_argument("--replace", action="store_true", help="replace devices already in the database")
     _db_output_options(add)
-    add.set_defaults(handler=run_db_add)
+    add.set_defaults(handler=run_db_add, inputs=("fingerprints",), outputs=("database",))
 
     lister = command_parser(sub, "list", "list the devices of a database",
                             "forensics fingerprint db list cameras/ --json",
@@ -117,7 +118,7 @@ def _register_db(inner: Any) -> None:
                             "and quality (effective number of images; higher is better).  --json gives every field.")
     lister.add_argument("database", metavar="DB", help="database folder")
     _db_output_options(lister)
-    lister.set_defaults(handler=run_db_list)
+    lister.set_defaults(handler=run_db_list, inputs=("database",), outputs=())
 
     remove = command_parser(sub, "remove", "remove a device from a database",
                             "forensics fingerprint db remove cameras/ 'Nikon D70 #0'",
@@ -125,7 +126,7 @@ def _register_db(inner: Any) -> None:
     remove.add_argument("database", metavar="DB", help="database folder")
     remove.add_argument("device", metavar="ID", help="device id (as 'db list' shows it)")
     _db_output_options(remove)
-    remove.set_defaults(handler=run_db_remove)
+    remove.set_defaults(handler=run_db_remove, inputs=(), outputs=("database",))
     db.set_defaults(handler=lambda args: db.print_help() or 2)
 
 

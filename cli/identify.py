@@ -19,6 +19,7 @@ from forensics.cli.common import (
     open_input,
     progress_for,
 )
+from forensics.cli.common import positive_float  # option types: values checked where parsed
 
 
 def register(sub) -> None:
@@ -51,11 +52,11 @@ def register(sub) -> None:
     parser.add_argument("--prescreen", choices=["auto", "on", "off"], default="auto",
                         help="compressed pre-screen of full-frame images: 'auto' (on above 50 fingerprints), 'on', "
                              "'off' (default auto)")
-    parser.add_argument("--sigma", type=float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
+    parser.add_argument("--sigma", type=positive_float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
     add_input_options(parser)
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("set", "--db"), outputs=("--report",))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -15,7 +15,7 @@ def register(sub) -> None:
     parser.add_argument("path", help="dataset folder or image file")
     add_input_options(parser)
     add_output_options(parser, report=False)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("path",), outputs=())
 
 
 def run(args: argparse.Namespace) -> int:

@@ -27,12 +27,24 @@ def refuse_existing(path: str | os.PathLike, force: bool) -> Path:
 
 
 def refuse_inputs(path: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:
-    """Raise :class:`UsageError` if ``path`` is (or contains, or lies inside) one of ``inputs``."""
+    """Raise :class:`UsageError` if ``path`` is (or contains, or lies inside) one of ``inputs``.
+
+    Paths are compared after resolving symbolic links (an output that does not exist yet is resolved as far as
+    its folders exist), so a link or ``..`` cannot hide an input; the check is the same with or without force.
+    """
     target = Path(path).resolve()
     for item in inputs:
         source = Path(item).resolve()
-        if target == source or source.is_relative_to(target) or target.is_relative_to(source):
-            raise UsageError(f"{path}: would overwrite the input {item}; choose an output outside the inputs")
+        if target == source:
+            how = "is the input"
+        elif source.is_relative_to(target):
+            how = "contains the input"
+        elif target.is_relative_to(source):
+            how = "lies inside the input"
+        else:
+            continue
+        raise UsageError(f"{path}: {how} {item}, which would be overwritten or deleted; choose an output outside "
+                         "the inputs")
 
 
 @contextlib.contextmanager

@@ -106,8 +106,8 @@ def parse_sensors(spec: str, shape: tuple[int, int], bit_depth: int) -> list[Sen
                 rate_scale = float(scale) if scale else 1.0
             except ValueError:
                 raise UsageError(f"--sensors '{item}': write a preset and a rate factor as H*100") from None
-            if rate_scale <= 0:
-                raise UsageError(f"--sensors '{item}': the rate factor must be > 0")
+            if not (np.isfinite(rate_scale) and rate_scale > 0):
+                raise UsageError(f"--sensors '{item}': the rate factor must be a finite number > 0")
             label = name.upper() + (f"×{rate_scale:g}" if scale else "")
             out.append(SensorSpec(label, preset(name, shape, bit_depth=bit_depth, rate_scale=rate_scale)))
         elif item.endswith(".json"):
