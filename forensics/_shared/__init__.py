@@ -1,7 +1,8 @@
 """Plumbing every other subpackage uses and none of them owns: the error types the CLI maps to exit codes,
 atomic output (a file or folder appears whole or not at all), the progress convention, the exact fast
 median filter, array helpers (grey conversions, full scale) and the one way random numbers enter the
-toolkit (``rng`` is a Generator or an integer seed, see :mod:`forensics._shared.rng`).  It imports
+toolkit (``rng`` is a Generator or an integer seed, see :mod:`forensics._shared.rng`) and the escaping of
+untrusted text for the terminal (:func:`~forensics._shared.text.printable`).  It imports
 nothing else of the package.
 """
 from forensics._shared.arrays import bits_full_scale, full_scale, grey_luma, grey_mean, infer_full_scale
@@ -19,6 +20,7 @@ from forensics._shared.jsonsafe import dumps, to_jsonable
 from forensics._shared.limits import memory_limit, pixel_limit, require_memory, require_pixels
 from forensics._shared.progress import Progress, choose_progress, no_progress, tqdm_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record, spawn
+from forensics._shared.text import printable
 
 __all__ = [
     "bits_full_scale", "full_scale", "grey_luma", "grey_mean", "infer_full_scale",
@@ -29,4 +31,5 @@ __all__ = [
     "memory_limit", "pixel_limit", "require_memory", "require_pixels",
     "Progress", "choose_progress", "no_progress", "tqdm_progress",
     "RngLike", "as_generator", "keyed_generator", "seed_record", "spawn",
+    "printable",
 ]
