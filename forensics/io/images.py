@@ -456,6 +456,41 @@ def _write_verified(tmp: str, spec: Any, pixels: np.ndarray, path: Path) -> None
     text = "\n".join(r for r in reports if r and r.strip())
     if not (opened and written and closed) or text:
         raise _write_failure(path, tmp, text)
+    incomplete = _incomplete(tmp, pixels)
+    if incomplete:
+        raise _write_failure(path, tmp, incomplete)
+
+
+_PNG_END = b"\0\0\0\0IEND\xaeB`\x82"  # the IEND chunk: length 0, type, CRC — the last 12 bytes of every PNG
+
+
+def _incomplete(tmp: str, pixels: np.ndarray) -> str:
+    """Why the closed file ``tmp`` is not whole, or "" if it is.
+
+    Needed besides the error text: the writers buffer their last bytes and flush them when the file is
+    closed, and a short write there (the size limit or the disk reached just then) is reported by no one.
+    A PNG is written front to back, and once a write has failed every later one fails too, so a PNG cut
+    short lacks its final IEND chunk: checking its last 12 bytes is enough.  libtiff rewrites its directory
+    in place, so a TIFF cut short in its last strip can still open with the right size: a TIFF is read back
+    and compared (a deflate decode, a fraction of the time the encode took).
+    """
+    if tmp.lower().endswith(".png"):
+        with open(tmp, "rb") as handle:
+            handle.seek(max(os.fstat(handle.fileno()).st_size - len(_PNG_END), 0))
+            return "" if handle.read() == _PNG_END else "the file ends before the PNG's final chunk"
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(tmp)
+    if inp is None:
+        return oiio.geterror() or "the file written cannot be opened"
+    try:
+        back = inp.read_image(0, 0, 0, int(inp.spec().nchannels), "unknown")
+        error = inp.geterror()
+    finally:
+        inp.close()
+    if error or back is None:
+        return error or "the file written cannot be read back"
+    same = np.array_equal(np.asarray(back).reshape(pixels.shape), pixels, equal_nan=pixels.dtype.kind == "f")
+    return "" if same else "the file written reads back different"
 
 
 def _write_failure(path: Path, tmp: str, library_text: str) -> OSError:
