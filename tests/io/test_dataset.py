@@ -22,7 +22,10 @@ def test_captured_formats():
     assert parse_captured("2009-07-02T12:00:00") == pytest.approx(2009.5)  # 2009 has 365 days; mid-year
     assert parse_captured("2010-01-01") == 2010.0
     assert parse_captured("2009-07-02T12:00:00Z") == pytest.approx(2009.5)
-    for bad in ("yesterday", "2009-13-01", "12"):
+    assert parse_captured("20090702T120000") == pytest.approx(2009.5)  # ISO 8601 basic form
+    assert parse_captured("20100101") == 2010.0
+    assert parse_captured("1975") == 1975.0 and parse_captured("2199.99") == 2199.99  # the plausible range's ends
+    for bad in ("yesterday", "2009-13-01", "12", "1974.99", "2200", "2200-01-01", "1970-01-01T00:00:00Z", "nan", "inf"):
         with pytest.raises(ValueError):
             parse_captured(bad)
 
