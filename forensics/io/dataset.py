@@ -197,14 +197,14 @@ class Dataset:
             If the frames do not all have the same size, naming the first that differs.
         """
         if not self.frames:
-            raise InputError(f"{self.root}: dataset has no images")
+            raise InputError(f"{printable(str(self.root))}: dataset has no images")
         infos = [frame.info() for frame in self.frames]
         sizes = [(i.width, i.height, i.channels) for i in infos]
         common = max(set(sizes), key=sizes.count)  # the majority size; the odd ones are named
         for info, size in zip(infos, sizes):
             if size != common:
                 raise InputError(
-                    f"{info.path}: size {size[0]}×{size[1]}×{size[2]} differs from the other images' "
+                    f"{printable(str(info.path))}: size {size[0]}×{size[1]}×{size[2]} differs from the other images' "
                     f"{common[0]}×{common[1]}×{common[2]}; a dataset's images must all have one size"
                 )
         return infos[0].shape
@@ -241,8 +241,9 @@ class Dataset:
             when = frame.captured
             if when is None:
                 raise InputError(
-                    f"{frame.path}: no capture date: the field 'captured' is missing from "
-                    f"{self.root / MANIFEST} and from the file's EXIF; add a 'captured' column"
+                    f"{printable(str(frame.path))}: no capture date: the field 'captured' is missing from "
+                    f"{printable(str(self.root / MANIFEST))} and the file's EXIF has none (or an implausible one); "
+                    "add a 'captured' column"
                 )
             times.append(when)
         return np.asarray(times, dtype=float)
