@@ -16,7 +16,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "describe": ["DatasetSummary", "summarize_dataset", "summarize_file"],
         "images": [
             "IMAGE_EXTENSIONS", "RAW_EXTENSIONS", "ImageInfo", "RawMosaic", "bits_dtype", "is_raw", "read_image",
-            "read_info", "read_raw", "require_regular_file", "write_image",
+            "file_problem", "read_info", "read_raw", "require_regular_file", "write_image",
         ],
         "stack": ["StackAccumulator", "StackStats", "stack_paths", "stack_sets", "stack_stats"],
     },

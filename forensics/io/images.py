@@ -233,7 +233,7 @@ def _positive(value: Any) -> float | None:
 def _captured(get: Callable[..., Any], raw: bool) -> _dt.datetime | None:
     """The capture time from EXIF: DateTimeOriginal, else DateTimeDigitized; IFD0 DateTime only for raw files.
 
-    Exif 2.32 (§4.6.5) defines DateTimeOriginal as when the image data was generated and DateTimeDigitized as
+    Exif 2.32 defines DateTimeOriginal as when the image data was generated and DateTimeDigitized as
     when it was stored digitally (the same moment in a digital camera), but DateTime (TIFF tag 306) as "the
     date and time the file was changed": every editor, converter — and OpenImageIO's TIFF writer, with the
     current time — rewrites it, so for ordinary images it is a modification time, not a capture date.  A raw
@@ -458,7 +458,7 @@ def _write_verified(tmp: str, spec: Any, pixels: np.ndarray, path: Path) -> None
         raise _write_failure(path, tmp, text)
     incomplete = _incomplete(tmp, pixels)
     if incomplete:
-        raise _write_failure(path, tmp, incomplete)
+        raise _write_failure(path, tmp, incomplete, source="")
 
 
 _PNG_END = b"\0\0\0\0IEND\xaeB`\x82"  # the IEND chunk: length 0, type, CRC — the last 12 bytes of every PNG
@@ -493,11 +493,12 @@ def _incomplete(tmp: str, pixels: np.ndarray) -> str:
     return "" if same else "the file written reads back different"
 
 
-def _write_failure(path: Path, tmp: str, library_text: str) -> OSError:
-    """The one-line error of a failed write: the file, the likely cause and what to do, the library's first line."""
+def _write_failure(path: Path, tmp: str, library_text: str, source: str = "OpenImageIO: ") -> OSError:
+    """The one-line error of a failed write: the file, the likely cause and what to do, and the first line of
+    what the library (or the check of the file's end, ``source=""``) reported."""
     first = next((line.strip() for line in library_text.splitlines() if line.strip()), "no reason given")
     code, cause, remedy = _likely_cause(tmp)
-    return OSError(code, f"writing the image failed: {cause} (OpenImageIO: {printable(first)}); {remedy}", _shown(path))
+    return OSError(code, f"writing the image failed: {cause} ({source}{printable(first)}); {remedy}", _shown(path))
 
 
 def _likely_cause(tmp: str) -> tuple[int, str, str]:

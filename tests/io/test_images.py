@@ -327,7 +327,7 @@ def test_tiffs_written_carry_no_write_date_and_tiff_datetime_is_no_capture_date(
     assert spec_in.spec().getattribute("DateTime") is None
     spec_in.close()
     assert read_info(plain).captured is None
-    # DateTime is when the file was changed (Exif 2.32 §4.6.5): not a capture date in an ordinary image ...
+    # DateTime is when the file was changed (Exif 2.32, tag 306): not a capture date in an ordinary image ...
     edited = write_image(tmp_path / "edited.tif", np.zeros((4, 4), np.uint8), metadata={"DateTime": "2015:01:01 00:00:00"})
     assert read_info(edited).captured is None
     # ... DateTimeOriginal is, and wins over DateTimeDigitized
