@@ -42,6 +42,8 @@ _RANGES = {
     "black_level": (0.0, math.inf, True, "a black level in DN, 0 or more"),
 }
 _UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
+#: The longest line read (bytes): above csv's 131,072-character field limit, far above any real row.
+_LONGEST_LINE = 2**20
 #: Characters of a field quoted in an error message; a longer value is cut (a message stays one readable line).
 _SHOWN_CHARS = 100
 
@@ -117,8 +119,12 @@ def _open_regular(manifest: Path, shown: str) -> BinaryIO:
 
 
 def _decoded_lines(handle: BinaryIO, shown: str) -> Iterator[str]:
-    """The file's lines as text, refusing anything but UTF-8 (a byte-order mark is allowed) and NUL bytes."""
-    for number, raw in enumerate(handle, start=1):
+    """The file's lines as text, refusing anything but UTF-8 (a byte-order mark is allowed), NUL bytes, and a
+    line longer than :data:`_LONGEST_LINE` (no manifest row needs one; a file without line ends is no manifest)."""
+    for number, raw in enumerate(iter(lambda: handle.readline(_LONGEST_LINE + 1), b""), start=1):
+        if len(raw) > _LONGEST_LINE:
+            raise InputError(f"{shown}, line {number}: longer than {_LONGEST_LINE:,} bytes; a manifest has one short "
+                             "row per image")
         if number == 1:
             if raw.startswith(_UTF16_BOMS):
                 raise InputError(f"{shown}: the file is UTF-16 text; save it as UTF-8 (e.g. 'CSV UTF-8' in a "
@@ -128,10 +134,11 @@ def _decoded_lines(handle: BinaryIO, shown: str) -> Iterator[str]:
             raise InputError(f"{shown}, line {number}: holds a NUL byte (UTF-16 or binary data?); a manifest is "
                              "UTF-8 text: save it as UTF-8")
         try:
-            yield raw.decode("utf-8")
+            text = raw.decode("utf-8")
         except UnicodeDecodeError as exc:
-            raise InputError(f"{shown}, line {number}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at column "
+            raise InputError(f"{shown}, line {number}: not UTF-8 text (byte 0x{raw[exc.start]:02x}, the line's byte "
                              f"{exc.start + 1}; Latin-1 or another code page?); save the manifest as UTF-8") from None
+        yield text
 
 
 def _records(lines: Iterable[str], shown: str) -> Iterator[tuple[int, list[str]]]:

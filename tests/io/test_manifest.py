@@ -91,7 +91,7 @@ def test_short_rows_and_blank_lines_are_allowed(tmp_path):
 @pytest.mark.parametrize("encoding, pattern", [
     ("utf-16", r"the file is UTF-16 text; save it as UTF-8"),
     ("utf-16-le", r"line 1: holds a NUL byte .*save it as UTF-8"),  # no byte-order mark: told by its NULs
-    ("latin-1", r"line 3: not UTF-8 text \(byte 0xe9 at column 11; Latin-1"),
+    ("latin-1", r"line 3: not UTF-8 text \(byte 0xe9, the line's byte 11; Latin-1"),
     ("cp1252", r"line 3: not UTF-8 text \(byte 0x93"),
 ])
 def test_a_manifest_that_is_not_utf8_is_refused_saying_so(tmp_path, encoding, pattern):
@@ -109,6 +109,10 @@ def test_a_field_over_the_csv_limit_is_refused_naming_the_line(tmp_path):
     """D11: csv's 131,072-character field limit raised a bare csv.Error."""
     _refused(_folder(tmp_path / "set", "file,subject\nf0.png,ok\nf1.png," + "x" * 140_000 + "\n"),
              r"line 3: not valid CSV \(field larger than field limit \(131072\)\)")
+
+
+def test_a_line_without_end_is_refused_before_it_fills_memory(tmp_path):
+    _refused(_folder(tmp_path / "set", "file\nf0.png\n" + "x," * 600_000), r"line 3: longer than 1,048,576 bytes")
 
 
 def test_a_manifest_that_is_a_folder_is_refused(tmp_path):
