@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
+from forensics._shared.text import printable
 from forensics.cli.common import add_input_options, add_output_options, command_parser, emit, open_input
 
 
@@ -22,9 +24,11 @@ def run(args: argparse.Namespace) -> int:
     from forensics.io.describe import summarize_dataset, summarize_file
 
     path = Path(args.path)
-    if path.is_file():
+    # File names, EXIF strings and manifest fields are untrusted: escaped before they reach the terminal.
+    if os.path.lexists(path) and not path.is_dir():  # a file, or something posing as one: described or refused
         data = summarize_file(path)
-        emit(args, lambda: "\n".join(f"{k:>12}: {v}" for k, v in data.items() if v not in (None, {}, [])), data)
+        emit(args, lambda: printable("\n".join(f"{k:>12}: {v}" for k, v in data.items() if v not in (None, {}, []))),
+             data)
         return 0
     summary = summarize_dataset(open_input(args, path))
 
@@ -53,5 +57,5 @@ def run(args: argparse.Namespace) -> int:
                 lines.append(f"  more than 1 °C off the set point: {', '.join(row['off_set_point'])}")
         return "\n".join(lines)
 
-    emit(args, text, summary.to_dict())
+    emit(args, lambda: printable(text()), summary.to_dict())
     return 0
