@@ -8,6 +8,7 @@ import warnings
 
 from forensics import __version__
 from forensics._shared.errors import InputError, UsageError
+from forensics._shared.lifetime import Terminated, sigterm_as_interrupt
 
 from forensics.cli.common import EXIT_BAD_INPUT, EXIT_USAGE
 
@@ -44,16 +45,17 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     warnings.simplefilter("default")
     try:
-        return int(args.handler(args) or 0)
+        with sigterm_as_interrupt():  # SIGTERM (timeout, systemd, schedulers) cleans up as Ctrl-C does
+            return int(args.handler(args) or 0)
     except InputError as exc:
         print(f"forensics: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except UsageError as exc:
         print(f"forensics: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        print("forensics: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C: 130; SIGTERM (Terminated, a KeyboardInterrupt): 143
+        print(f"forensics: {exc if isinstance(exc, Terminated) else 'interrupted'}", file=sys.stderr)
+        return exc.exit_code if isinstance(exc, Terminated) else 130
 
 
 if __name__ == "__main__":
