@@ -293,8 +293,8 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     """
     import os
     import shutil
-    import tempfile
 
+    from forensics._shared.atomic import mkdtemp_like_mkdir
     from forensics.prnu.database import FingerprintDatabase
 
     def add(db: FingerprintDatabase) -> tuple[list[Any], set[str], int]:
@@ -306,7 +306,7 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     if folder.exists():
         return add(FingerprintDatabase(folder, create=True))  # an empty folder becomes a database
     folder.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
+    stage = mkdtemp_like_mkdir(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent)  # umask mode
     try:
         result = add(FingerprintDatabase(stage, create=True))
         try:

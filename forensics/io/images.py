@@ -10,14 +10,13 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from forensics._shared.atomic import refuse_existing
+from forensics._shared.atomic import mkstemp_like_open, refuse_existing
 from forensics._shared.errors import InputError
 
 RAW_EXTENSIONS = frozenset(
@@ -269,7 +268,7 @@ def write_image(
     if ext in (".tif", ".tiff"):
         spec.attribute("compression", "zip")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)
+    fd, tmp = mkstemp_like_open(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)  # umask mode
     os.close(fd)
     try:
         out = oiio.ImageOutput.create(tmp)
