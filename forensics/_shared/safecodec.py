@@ -38,7 +38,7 @@ import os
 import sys
 import zipfile
 from pathlib import Path, PurePath
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -60,14 +60,22 @@ class Undecodable(ValueError):
 
 def encode(value: Any) -> bytes:
     """The ``.npz`` bytes of ``value``; raises :class:`Unencodable` for what :func:`decode` could not rebuild."""
+    buffer = io.BytesIO()
+    dump(value, buffer)
+    return buffer.getvalue()
+
+
+def dump(value: Any, handle: BinaryIO) -> None:
+    """Write ``value`` to the binary file ``handle`` as :func:`encode` does, without a copy of its arrays in memory.
+
+    Raises :class:`Unencodable` before anything is written.
+    """
     arrays: list[np.ndarray] = []
     tree = _encode(value, arrays)
     members = {f"a{i}": a for i, a in enumerate(arrays)}
     text = json.dumps({"format": FORMAT, "value": tree}, allow_nan=False, separators=(",", ":"))
     members[_STRUCTURE] = np.frombuffer(text.encode(), np.uint8)
-    buffer = io.BytesIO()
-    np.savez(buffer, **members)
-    return buffer.getvalue()
+    np.savez(handle, **members)  # uncompressed: results are mostly noise-like floats
 
 
 def _array_ref(array: np.ndarray, arrays: list[np.ndarray]) -> int:

@@ -143,3 +143,10 @@ def test_parallel_command_runs_from_inside_the_checkout(wheel, user_venv, tmp_pa
     assert inside[0].keys() == outside[0].keys() and len(inside[0]) == 2 * 11 + 2  # 2 ages × (10 + manifest) + 2
     assert all(inside[0][k] == outside[0][k] for k in inside[0]), "aged images differ with the working folder"
     assert inside[1] == outside[1], "the fingerprint differs with the working folder"
+    pytest.importorskip("distributed")
+    # A local Dask cluster's workers (spawned, not forked from the server) from inside the checkout too.
+    dask = _forensics(user_venv, "simulate", "age", tmp_path / "src", tmp_path / "aged-dask", "--sensor", "H", "--years",
+                      "0,10", "--seed", "5", "--scheduler", "local", "--workers", "2", "--json", cwd=checkout)
+    assert dask.returncode == 0, dask.stderr[-2000:]
+    assert '"backend": "dask"' in dask.stdout
+    assert _tree(tmp_path / "aged-dask") == outside[0]
