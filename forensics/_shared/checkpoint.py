@@ -59,7 +59,7 @@ def input_digests(paths: Iterable[str | os.PathLike]) -> list[list[str | None]]:
 
 def stamp_of(config: dict[str, Any], inputs: Iterable[str | os.PathLike] | None = None) -> dict[str, Any]:
     """The stamp of a run: ``config`` as plain JSON, plus the content digests of ``inputs`` if given."""
-    stamp = json.loads(json.dumps(to_jsonable(config), sort_keys=True))
+    stamp = json.loads(json.dumps(to_jsonable(config), sort_keys=True, default=str))  # str: e.g. a datetime
     if inputs is not None:
         stamp["input_sha256"] = input_digests(inputs)
     return stamp

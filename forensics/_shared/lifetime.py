@@ -79,7 +79,9 @@ def exit_with(pid: int) -> None:
 
     def watch() -> None:
         if fd is not None:
-            select.select([fd], [], [])
+            poller = select.poll()  # not select(): a worker may hold descriptors numbered above FD_SETSIZE
+            poller.register(fd, select.POLLIN)
+            poller.poll()
         else:
             while _alive(pid):
                 time.sleep(1.0)
