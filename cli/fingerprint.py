@@ -149,13 +149,13 @@ def run_build(args: argparse.Namespace) -> int:
 
     region = parse_region(args.region)
     out = Path(args.output)
-    refuse_existing(out, args.force)  # before hours of work, not after
+    refuse_existing(out, args.force, file=True)  # before hours of work, not after
     ds = open_input(args, args.set)
     info(args, f"building a fingerprint from {len(ds)} images of {ds.root} ({region.spec}) …")
     # Finished chunks are kept in .FP.partial beside the output until it is written: an interrupted build resumes.
     partial = out.with_name(f".{out.name}.partial")
-    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma),
-                                                        args.force) as checkpoint:
+    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma), args.force,
+                                                        inputs=[f.path for f in ds.frames]) as checkpoint:
         fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), executor=ex,
                                checkpoint=checkpoint)
         fp.save(out, force=args.force)
@@ -294,8 +294,8 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     """
     import os
     import shutil
-    import tempfile
 
+    from forensics._shared.atomic import mkdtemp_like_mkdir
     from forensics.prnu.database import FingerprintDatabase
 
     def add(db: FingerprintDatabase) -> tuple[list[Any], set[str], int]:
@@ -307,7 +307,7 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     if folder.exists():
         return add(FingerprintDatabase(folder, create=True))  # an empty folder becomes a database
     folder.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
+    stage = mkdtemp_like_mkdir(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent)  # umask mode
     try:
         result = add(FingerprintDatabase(stage, create=True))
         try:

@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from forensics import __version__
+from forensics._shared.atomic import current_umask, mkdtemp_like_mkdir
 from forensics._shared.errors import InputError, UsageError
 from forensics.prnu.fingerprint import Fingerprint
 
@@ -177,6 +178,7 @@ def _init_index(path: Path) -> None:
         con.executescript(f"BEGIN;{_SCHEMA}COMMIT;")
     finally:
         con.close()
+    os.chmod(path, 0o666 & ~current_umask())  # sqlite makes 0644 whatever the umask; its -wal/-shm follow this
 
 
 @dataclass
@@ -314,7 +316,7 @@ class FingerprintDatabase:
         """Build the database in a temporary sibling and rename it into place: never seen half-made."""
         folder = self.folder
         folder.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
+        tmp = mkdtemp_like_mkdir(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent)
         try:
             _init_index(tmp / INDEX)
             (tmp / FINGERPRINTS).mkdir()
