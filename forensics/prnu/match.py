@@ -31,11 +31,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.fft
-from scipy import special
 
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.parallel import Executor, resolve
+from forensics.prnu.correlation import _centred, _false_alarm, _shift_indices, _Spectrum, _sum_sq, surface
 from forensics.prnu.fingerprint import Fingerprint, Region, parse_region, region_residual_and_intensity
 from forensics._shared.progress import Progress, no_progress
 from forensics.prnu.residual import default_workers
@@ -176,23 +175,6 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.clip(num / den, -1.0, 1.0))
 
 
-def _sum_sq(a: np.ndarray) -> float:
-    return float(np.square(a).sum(dtype=np.float64))
-
-
-def _centred(a: np.ndarray) -> np.ndarray:
-    """float32 copy of ``a`` minus its mean (the mean taken in float64)."""
-    out = np.array(a, dtype=np.float32, copy=True)
-    out -= np.float32(out.mean(dtype=np.float64))
-    return out
-
-
-def _shift_indices(r: int | None, n: int) -> np.ndarray:
-    if r is None or 2 * r + 1 >= n:
-        return np.arange(n)
-    return np.arange(-r, r + 1) % n
-
-
 def _parse_shift_range(shift_range: int | tuple[int, int] | None) -> tuple[int | None, int | None]:
     if shift_range is None:
         return None, None
@@ -206,17 +188,6 @@ def _parse_shift_range(shift_range: int | tuple[int, int] | None) -> tuple[int |
     return ry, rx
 
 
-class _Spectrum:
-    """Real FFT of a zero-mean array, kept to correlate it with many references."""
-
-    def __init__(self, a: np.ndarray, workers: int) -> None:
-        a0 = _centred(a)
-        self.shape = a0.shape
-        self.norm = math.sqrt(_sum_sq(a0))
-        self.spec = scipy.fft.rfft2(a0, workers=workers)
-        self.workers = workers
-
-
 def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion: int) -> tuple[PceResult, float]:
     """PCE of the spectrum's array against ``reference``, and the NCC at zero shift."""
     h, w = sa.shape
@@ -225,14 +196,7 @@ def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion:
     if h < 2 * exclusion or w < 2 * exclusion:
         raise InputError(f"arrays of shape {sa.shape} are too small for PCE with a {exclusion}×{exclusion} exclusion window")
     ry, rx = _parse_shift_range(shift_range)
-    b0 = _centred(reference)
-    norm_b = math.sqrt(_sum_sq(b0))
-    spec = scipy.fft.rfft2(b0, workers=sa.workers)
-    del b0
-    np.conjugate(spec, out=spec)
-    spec *= sa.spec
-    corr = scipy.fft.irfft2(spec, s=(h, w), workers=sa.workers)
-    del spec
+    corr, norm_b = surface(sa, reference)
     rows = _shift_indices(ry, h)
     cols = _shift_indices(rx, w)
     n_shifts = rows.size * cols.size
@@ -269,24 +233,6 @@ def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion:
         n_shifts=int(n_shifts),
     )
     return result, ncc0
-
-
-def _false_alarm(z: float, n: float, weight: float = 1.0) -> tuple[float, float]:
-    """``1 − (1 − Q(z)/weight)^n`` and its log10, stable for tiny and for large tails.
-
-    ``weight`` is the position's share of a weighted (Bonferroni–Šidák) search: ``n`` positions whose
-    weights sum to ``n`` (one each when unweighted, see :mod:`forensics.prnu.identify`).
-    """
-    log_p = min(0.0, float(special.log_ndtr(-z)) - math.log(weight))  # log(Q(z)/weight)
-    p = math.exp(log_p)
-    if p > 1e-12:
-        log_keep = n * math.log1p(-p) if p < 1.0 else -math.inf
-        p_fa = -math.expm1(log_keep)
-        log10 = math.log10(p_fa) if p_fa > 0 else log_p / math.log(10) + math.log10(n)
-    else:  # (1 − p)^n = 1 − n·p + O((n·p)²)
-        log10 = (log_p + math.log(n)) / math.log(10)
-        p_fa = min(1.0, 10.0**log10) if log10 > -320 else 0.0
-    return float(min(1.0, p_fa)), float(min(0.0, log10))
 
 
 def pce(

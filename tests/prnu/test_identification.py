@@ -16,20 +16,18 @@ from scipy import stats
 from forensics._shared.errors import InputError, UsageError
 from forensics.demo.prnu import sensor_model, simulated_set
 from forensics.prnu.fingerprint import build_fingerprint, parse_region
+from forensics.prnu.correlation import _false_alarm
+from forensics.prnu.geometry import _axis_range, _crop_test, _Reference
 from forensics.prnu.identify import (
     Prescreen,
     ScaleSearch,
-    _axis_range,
-    _crop_test,
-    _Reference,
     identify,
     parse_scales,
     pce_threshold,
     prescreen_miss_rate,
     resample,
-    sketch,
 )
-from forensics.prnu.match import _false_alarm
+from forensics.prnu.prescreen import sketch
 
 PFA = 1e-3
 FLATS = 8
