@@ -1,6 +1,7 @@
 """Getting data in: images (OpenImageIO, rawpy; native dtype, raw mosaics with their CFA), dataset folders
 with an optional ``manifest.csv`` (frames, capture dates, conditions, epochs), one-pass streaming stack
-statistics (mean, variance, minimum, maximum per pixel), and the summaries behind ``forensics info``.
+statistics (mean, variance, minimum, maximum per pixel), whether a frame holds any content (constant, black
+or saturated frames), and the summaries behind ``forensics info``.
 """
 import lazy_loader as _lazy
 
@@ -9,6 +10,7 @@ import lazy_loader as _lazy
 __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
+        "content": ["MIN_EXPOSED", "FrameContent", "content_problem", "frame_content"],
         "dataset": [
             "Dataset", "Frame", "decimal_year", "from_decimal_year", "list_images", "open_dataset",
             "parse_captured", "split_epochs", "write_manifest",
