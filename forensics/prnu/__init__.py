@@ -21,15 +21,16 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         ],
         "clusterwrite": ["write_cluster_dataset"],
         "database": ["DeviceEntry", "FingerprintDatabase"],
-        "fingerprint": ["Fingerprint", "FingerprintBuilder", "FingerprintJob", "ImageSet", "Region", "build_fingerprint",
-                        "build_fingerprints", "parse_region"],
+        "fingerprint": ["Fingerprint", "FingerprintBuilder", "FingerprintJob", "build_fingerprint", "build_fingerprints"],
         "geometry": ["ScaleSearch"],
+        "imageset": ["ImageSet"],
         "identify": ["IdentificationResult", "QueryIdentification", "identify", "prescreen_miss_rate"],
         "prescreen": ["Prescreen"],
         "match": [
             "PCE_THRESHOLD", "QUERY_SIGMA", "MatchScore", "PceResult", "Query", "SetMatch", "match_set", "ncc",
             "pce", "prepare_query", "score_matrix", "score_pair", "score_query",
         ],
+        "region": ["Region", "parse_region"],
         "residual": ["median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft", "zero_mean_cfa"],
         "samedevice": [
             "EerVerdict", "SameDeviceResult", "SetPlan", "SetSummary", "eer_verdict",

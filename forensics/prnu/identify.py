@@ -19,14 +19,36 @@ probability is
 
     p_FA = 1 − (1 − Q(z_best)/w_best)^n,     n = Σ_j positions_j · scales_j · rotations_j   (Šidák)
 
-(``w = 1`` except on JPEG crops, above; candidates are ranked by ``Q(z)/w``)
+with position weights ``w`` that sum to ``n`` (a weighted Šidák/Bonferroni split of the budget; candidates
+are ranked by ``Q(z)/w``), and the image is *attributed* when ``p_FA ≤ pfa``, else *unknown*.  Neighbouring
+positions and scales are positively correlated, which makes Šidák conservative for Gaussian ``z``, so
+searching more never inflates false alarms; measured on simulated devices outside the set the corrected
+``p_FA`` is close to uniform (crop searches over ~10⁴ offsets: 5, 13 and 36 of 60 at 0.05, 0.2 and 0.5;
+aligned images: 9 and 39 of 200 at 0.05 and 0.2).  The equivalent PCE threshold,
+``Q⁻¹(1 − (1 − pfa)^(w/n))²`` for the best peak's weight, is reported with each image.
 
-and the image is *attributed* when ``p_FA ≤ pfa``, else *unknown*.  Neighbouring positions and scales
-are positively correlated, which makes Šidák conservative for Gaussian ``z``, so searching more never
-inflates false alarms; measured on simulated devices outside the set the corrected ``p_FA`` is close to
-uniform (crop searches over ~10⁴ offsets: 5, 13 and 36 of 60 at 0.05, 0.2 and 0.5; aligned images: 9
-and 39 of 200 at 0.05 and 0.2).
-The equivalent PCE threshold, ``Q⁻¹(1 − (1 − pfa)^(w/n))²`` for the best peak's weight, is reported with each image.
+**Two hypotheses, two shares.**  An image of a fingerprint's frame size is most likely the camera's own
+picture, aligned (one position per fingerprint and orientation); but in a database of many sensor sizes
+it is also a possible crop of every larger sensor, at ~10⁶ offsets each.  With one count for both, the
+crop searches set the threshold of the aligned test too: a natural Dresden D70 image scores PCE 27
+(p ≈ 10⁻⁷) at zero shift against its own camera, but with two D200 fingerprints in the database its
+``n`` is 1,025,894 and the threshold PCE 36, so it came out unknown.  The aligned positions (``n_al``:
+same-size, scale 1, zero shift, over all fingerprints and orientations) therefore get their own share
+:data:`ALIGNED_SHARE` of the budget and the searched positions (``n_se``: crops and scales) the rest:
+``w_al = share·n/n_al`` and ``w_se = (1 − share)·n/n_se`` (times the JPEG-grid weight of
+:mod:`forensics.prnu.blockpce` inside a search), which sum to ``n``, so the bound holds whichever
+hypothesis is true.  For the D70 image (4 aligned tests, 1,025,890 crop positions) the aligned threshold
+falls to PCE 13.4 and it is attributed, while the crop positions' threshold rises from 36.0 to 37.4.  With only
+one kind of position every weight is 1, as before.  Both shares, their counts
+and their thresholds are reported with each image (``budget``).
+
+**Ambiguity.**  When more than one device reaches the decision (each one's ``p_FA`` at most ``pfa``) the
+image is *ambiguous* and no device is named: the candidates are listed instead (``matches``).  This is
+what two entries of one sensor (or a false alarm) give; picking one, for instance the first by name
+among identical fingerprints, would state a certainty the data do not have.
+
+**Content-free images** (constant, black or saturated: :mod:`forensics.io.content`) are not scored:
+their decision is *excluded*, with the reason; a set of nothing but such images is refused.
 
 Execution: one work item per query (a path or a dataset frame, read by the worker), the fingerprints
 (and their sketches) shipped once per worker (``shared``); results in query order on every backend.
@@ -55,7 +77,7 @@ from forensics.prnu.correlation import (
     pce_threshold,
     surface,
 )
-from forensics.prnu.fingerprint import Fingerprint, parse_region
+from forensics.prnu.fingerprint import Fingerprint, check_fingerprint, parse_region, region_content_problem
 from forensics.prnu.geometry import (
     _ROTATION_MODES,
     ScaleSearch,
@@ -80,6 +102,7 @@ from forensics.prnu.prescreen import (
 from forensics.prnu.residual import default_workers
 
 __all__ = [
+    "ALIGNED_SHARE",
     "CORRECTION",
     "DEFAULT_PFA",
     "PRESCREEN_AUTO_MIN",
@@ -98,10 +121,14 @@ __all__ = [
 
 #: Default false-alarm probability of an attribution, over all fingerprints and positions searched.
 DEFAULT_PFA = 1e-3
+#: Share of the false-alarm budget given to the aligned positions when crops or scales are searched too.
+ALIGNED_SHARE = 0.5
 #: The decision rule, as reported.
 CORRECTION = ("weighted Šidák: p_FA = 1 − (1 − Q(z_best)/w_best)^n, n = Σ over compatible fingerprints of "
-              "positions × scales × rotations searched; z = √PCE; w = 1 except on a JPEG crop (offsets on its "
-              "detected block grid share half the budget: w > 1 there, < 1 elsewhere); attributed when p_FA ≤ pfa")
+              "positions × scales × rotations searched; z = √PCE; weights sum to n: when both are searched, the "
+              "aligned positions (same size, zero shift) share half the budget and the crop/scale positions the "
+              "other half, and on a JPEG crop the offsets on its detected block grid share half of the search's; "
+              "attributed when p_FA ≤ pfa for one device, ambiguous when for several")
 
 
 # ----------------------------------------------------------------------------- results
@@ -118,7 +145,7 @@ class Candidate:
         Signed PCE at the best position (``z = sign·√|PCE|``).
     p_fa : float
         False-alarm probability of this fingerprint alone over its own search
-        (``1 − (1 − Q(z))^n_positions``); the decision uses the query's corrected value instead.
+        (``1 − (1 − Q(z)/w_grid)^n_positions``); the decision uses the query's corrected value instead.
     log10_p_fa : float
     ncc : float
         Normalised correlation at the peak.
@@ -138,8 +165,9 @@ class Candidate:
         The plain PCE at the same peak (one energy over all shifts, as ``forensics fingerprint match``
         reports), for comparison; the decision uses ``pce`` (block-phase energy, module notes).
     search_weight : float
-        The peak's share of the weighted search (module notes): above 1 on the query's detected JPEG
-        grid, below 1 off it, 1 without a grid.  Its tail is ``Q(z)/search_weight``.
+        The peak's weight in the query's weighted search (module notes): its hypothesis' share (aligned or
+        searched, 1 when only one kind is searched) times its JPEG-grid weight (above 1 on the query's
+        detected grid, below 1 off it, 1 without a grid).  Its tail is ``Q(z)/search_weight``.
     """
 
     device_id: str
@@ -196,7 +224,8 @@ class QueryIdentification:
     shape : (int, int)
         Image height and width as stored.
     decision : str
-        ``'attributed'`` or ``'unknown'``.
+        ``'attributed'`` (one device reaches the decision), ``'ambiguous'`` (several do: see ``matches``),
+        ``'unknown'`` (none does) or ``'excluded'`` (a content-free image, not scored: see ``note``).
     device_id : str or None
         The attributed device.
     best, runner_up : Candidate or None
@@ -219,6 +248,11 @@ class QueryIdentification:
         The scale grid used (number, range, grid error in pixels), None without a scale search.
     note : str or None
         Why an image could not be scored, if so.
+    matches : tuple of str
+        Every device that reaches the decision (one when attributed, several when ambiguous).
+    budget : dict or None
+        The split of the false-alarm budget between the aligned and the searched positions (module notes):
+        for each, its positions, share, weight and the PCE a peak of weight 1 within it needs.
     """
 
     source: str
@@ -237,6 +271,8 @@ class QueryIdentification:
     prescreen: dict[str, Any] | None = None
     scales: dict[str, Any] | None = None
     note: str | None = None
+    matches: tuple[str, ...] = ()
+    budget: dict[str, Any] | None = None
 
     @property
     def attributed(self) -> bool:
@@ -249,7 +285,7 @@ class QueryIdentification:
                 "top": [c.to_dict() for c in self.top], "p_fa": self.p_fa, "log10_p_fa": self.log10_p_fa,
                 "pce_threshold": self.pce_threshold, "n_tests": self.n_tests,
                 "n_fingerprints": self.n_fingerprints, "n_scored": self.n_scored, "prescreen": self.prescreen,
-                "scales": self.scales, "note": self.note}
+                "scales": self.scales, "note": self.note, "matches": list(self.matches), "budget": self.budget}
 
 
 @dataclass
@@ -267,6 +303,10 @@ class IdentificationResult:
     def n_attributed(self) -> int:
         return sum(1 for q in self.queries if q.attributed)
 
+    def n_decided(self, decision: str) -> int:
+        """Images with this decision ('attributed', 'ambiguous', 'unknown' or 'excluded')."""
+        return sum(1 for q in self.queries if q.decision == decision)
+
     def counts(self) -> dict[str, int]:
         """Images attributed to each device (devices with none omitted)."""
         out: dict[str, int] = {}
@@ -277,7 +317,8 @@ class IdentificationResult:
 
     def to_dict(self) -> dict[str, Any]:
         return {"set": self.name, "n_images": len(self.queries), "n_fingerprints": len(self.devices),
-                "n_attributed": self.n_attributed, "n_unknown": len(self.queries) - self.n_attributed,
+                "n_attributed": self.n_attributed, "n_ambiguous": self.n_decided("ambiguous"),
+                "n_unknown": self.n_decided("unknown"), "n_excluded": self.n_decided("excluded"),
                 "pfa": self.pfa, "correction": self.correction, "settings": self.settings,
                 "counts": self.counts(), "devices": self.devices, "queries": [q.to_dict() for q in self.queries]}
 
@@ -380,22 +421,53 @@ def _run_test(query: _QueryImage, ref: _Reference, test: _Test, exclusion: int) 
 
 
 def _score_reference(query: _QueryImage, ref: _Reference, tests: list[_Test], exclusion: int,
-                     sketch_score: float | None) -> Candidate:
-    """The best of a fingerprint's tests, with its own search-corrected p_FA."""
-    best: tuple[float, _Peak, _Test, tuple[int, int]] | None = None
+                     sketch_score: float | None, shares: _Budget) -> Candidate:
+    """The best of a fingerprint's tests (smallest tail weighted by its hypothesis' share and its grid weight),
+    with its own search-corrected p_FA."""
+    best: tuple[float, _Peak, _Test, tuple[int, int], float] | None = None
     for test in tests:
         peak, offset = _run_test(query, ref, test, exclusion)
-        tail = _log_tail(_z(peak.pce), peak.weight)
+        weight = peak.weight * shares.weight(test.aligned)
+        tail = _log_tail(_z(peak.pce), weight)
         if best is None or tail < best[0]:
-            best = (tail, peak, test, offset)
+            best = (tail, peak, test, offset, weight)
     assert best is not None
-    _, peak, test, offset = best
+    _, peak, test, offset, weight = best
     n = sum(t.n_positions for t in tests)
     p_fa, log10 = _false_alarm(_z(peak.pce), n, peak.weight) if peak.sign != 0 else (1.0, 0.0)
     method = "aligned" if test.aligned else ("crop" if test.scale_yx == (1.0, 1.0) else "scale")
     return Candidate(ref.device_id, float(peak.pce), p_fa, log10, peak.ncc, test.rotation, float(test.scale),
                      (int(offset[0]), int(offset[1])), int(n), method, sketch_score, float(peak.pce_global),
-                     float(peak.weight))
+                     float(weight))
+
+
+@dataclass(frozen=True)
+class _Budget:
+    """How a query's false-alarm budget is split between aligned and searched positions (module notes)."""
+
+    n_aligned: int
+    n_searched: int
+    share: float = ALIGNED_SHARE
+
+    @property
+    def n(self) -> int:
+        return self.n_aligned + self.n_searched
+
+    def weight(self, aligned: bool) -> float:
+        """``w_al = share·n/n_al`` or ``w_se = (1 − share)·n/n_se``; 1 when only one kind is searched."""
+        if self.n_aligned == 0 or self.n_searched == 0:
+            return 1.0
+        return self.share * self.n / self.n_aligned if aligned else (1.0 - self.share) * self.n / self.n_searched
+
+    def to_dict(self, pfa: float) -> dict[str, Any]:
+        both = self.n_aligned > 0 and self.n_searched > 0
+        out = {}
+        for key, aligned, count in (("aligned", True, self.n_aligned), ("searched", False, self.n_searched)):
+            share = (self.share if aligned else 1.0 - self.share) if both else float(count > 0)
+            w = self.weight(aligned)
+            out[key] = {"n_tests": count, "share": share, "weight": w if count else None,
+                        "pce_threshold": pce_threshold(pfa, self.n / w) if count else None}
+        return out
 
 
 
@@ -414,12 +486,19 @@ def _identify_item(settings: _Settings, item: tuple[int, Any]) -> QueryIdentific
     """Work item: one query against every compatible fingerprint."""
     index, payload = item
     image, source = _load_query(payload, index)
+    shape = (int(image.shape[0]), int(image.shape[1])) if image.ndim in (2, 3) else (0, 0)
+    problem = region_content_problem(image, "full", **settings.query_options) if image.ndim in (2, 3) else None
+    if problem is not None:  # nothing to score: any number would be taken at face value
+        return QueryIdentification(source, shape, "excluded", None, None, None, (), 1.0, 0.0, math.inf, 0, 0, 0,
+                                   note=f"content-free: {problem}")
     query = _QueryImage(image, source, settings)
     del image
     plans = [_plan(query.shape, ref, settings.rotations, settings.scales, settings.crop_search)
              for ref in settings.refs]
     compatible = [j for j, tests in enumerate(plans) if tests]
-    n_tests = sum(t.n_positions for tests in plans for t in tests)
+    n_aligned = sum(t.n_positions for tests in plans for t in tests if t.aligned)
+    shares = _Budget(n_aligned, sum(t.n_positions for tests in plans for t in tests) - n_aligned)
+    n_tests = shares.n
     scale_info = _scale_info(settings.scales, query.shape)
     if not compatible:
         note = (f"no fingerprint is compatible with this {query.shape[1]}×{query.shape[0]} image (size, orientation"
@@ -428,17 +507,22 @@ def _identify_item(settings: _Settings, item: tuple[int, Any]) -> QueryIdentific
         return QueryIdentification(source, query.shape, "unknown", None, None, None, (), 1.0, 0.0, math.inf, 0, 0, 0,
                                    None, scale_info, note)
     chosen, sketch_scores, pre_info = _prescreen(query, settings.refs, settings.prescreen, plans, compatible)
-    candidates = [_score_reference(query, settings.refs[j], plans[j], settings.exclusion, sketch_scores.get(j))
-                  for j in chosen]
+    candidates = [_score_reference(query, settings.refs[j], plans[j], settings.exclusion, sketch_scores.get(j),
+                                   shares) for j in chosen]
     candidates.sort(key=lambda c: (c.log_tail, c.device_id))
     best = candidates[0]
     p_fa, log10 = _false_alarm(best.z, n_tests, best.search_weight) if best.pce != 0 else (1.0, 0.0)
-    attributed = best.z > 0 and p_fa <= settings.pfa
+    # every device that reaches the decision on its own: one is an attribution, several an ambiguity
+    matches = tuple(c.device_id for c in candidates
+                    if c.z > 0 and _false_alarm(c.z, n_tests, c.search_weight)[0] <= settings.pfa)
+    decision = "unknown" if not matches else ("attributed" if len(matches) == 1 else "ambiguous")
+    note = (f"{len(matches)} devices reach the decision ({', '.join(matches[:4])}): the image matches each of them "
+            "(one sensor in the database twice, or a false alarm), so none is named") if len(matches) > 1 else None
     return QueryIdentification(
-        source, query.shape, "attributed" if attributed else "unknown", best.device_id if attributed else None,
+        source, query.shape, decision, best.device_id if decision == "attributed" else None,
         best, candidates[1] if len(candidates) > 1 else None, tuple(candidates[: settings.top_k]), p_fa, log10,
         pce_threshold(settings.pfa, n_tests / best.search_weight), int(n_tests), len(compatible), len(candidates),
-        pre_info, scale_info)
+        pre_info, scale_info, note, matches, shares.to_dict(settings.pfa))
 
 
 
@@ -468,6 +552,7 @@ def _references(fingerprints: Any) -> tuple[tuple[_Reference, ...], list[dict[st
         seen.add(device_id)
         if not isinstance(fp, Fingerprint):
             raise UsageError(f"{device_id}: {type(fp).__name__} is not a Fingerprint")
+        check_fingerprint(fp, f"the fingerprint of device {device_id!r}")
         region = parse_region(fp.region)
         origin = None
         if region.kind != "corners":
@@ -508,7 +593,13 @@ def _query_items(queries: Any, executor: Executor) -> tuple[list[tuple[int, Any]
     return items, name
 
 
-def _check_options(top_k: int, pfa: float, rotations: Any) -> None:
+def _check_options(top_k: int, pfa: float, rotations: Any, sigma: float) -> None:
+    try:
+        value = float(sigma)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise UsageError(f"sigma={sigma!r}: the query residual's noise level must be a positive number (2 is usual)")
     if top_k < 1:
         raise UsageError(f"top_k={top_k}: list at least one candidate")
     if not (0.0 < pfa < 1.0):
@@ -569,8 +660,16 @@ def identify(
     Returns
     -------
     IdentificationResult
+
+    Raises
+    ------
+    UsageError
+        Options out of range (``sigma`` not a positive number, ``pfa`` outside (0, 1), …).
+    InputError
+        A fingerprint holds no usable pattern (NaN, constant), a query cannot be read, or every query is
+        content-free.
     """
-    _check_options(top_k, pfa, rotations)
+    _check_options(top_k, pfa, rotations, sigma)
     search = _scale_search(scales)
     ex = resolve(executor)
     refs, devices = _references(fingerprints)
@@ -585,6 +684,9 @@ def identify(
     else:
         items, name = _query_items(queries, ex)
         results = list(ex.map(_identify_item, items, shared=settings, progress=progress, desc="identifying"))
+    if results and all(q.decision == "excluded" for q in results):
+        raise InputError(f"{name or 'the queries'}: every one of its {len(results)} image(s) is content-free, so none "
+                         f"can be identified (first, {results[0].source}: {results[0].note}); give exposed images")
     return IdentificationResult(results, devices, float(pfa), _settings_dict(settings, prescreen), CORRECTION, name)
 
 

@@ -35,7 +35,14 @@ import numpy as np
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.parallel import Executor, resolve
 from forensics.prnu.correlation import _centred, _false_alarm, _shift_indices, _Spectrum, _sum_sq, surface
-from forensics.prnu.fingerprint import Fingerprint, Region, parse_region, region_residual_and_intensity
+from forensics.prnu.fingerprint import (
+    Fingerprint,
+    Region,
+    check_fingerprint,
+    parse_region,
+    region_content_problem,
+    region_residual_and_intensity,
+)
 from forensics._shared.progress import Progress, no_progress
 from forensics.prnu.residual import default_workers
 
@@ -112,7 +119,9 @@ class MatchScore:
     """Score of one query against one fingerprint.
 
     ``value`` is the PCE (signed) or the NCC, per ``metric``; ``rotation`` the number
-    of 90° counter-clockwise turns (``np.rot90``) applied to the query image.
+    of 90° counter-clockwise turns (``np.rot90``) applied to the query image.  A content-free
+    query (constant, black or saturated over the fingerprint's region, :mod:`forensics.io.content`)
+    is not scored: ``value`` and ``ncc`` are NaN and ``excluded`` says why.
     """
 
     metric: str
@@ -120,6 +129,7 @@ class MatchScore:
     rotation: int
     ncc: float
     pce: PceResult | None = None
+    excluded: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -129,6 +139,7 @@ class MatchScore:
             "rotation": self.rotation,
             "ncc": self.ncc,
             "pce": self.pce.to_dict() if self.pce is not None else None,
+            "excluded": self.excluded,
         }
 
 
@@ -435,10 +446,15 @@ def score_query(
         Passed to :func:`prepare_query` (white_level, black_level, ...).
     """
     _check_metric(metric)
+    check_fingerprint(fingerprint)
     workers = default_workers() if workers is None else workers
     region = parse_region(fingerprint.region)
     best: MatchScore | None = None
     rots = _rotations_for(rotations, np.shape(image), fingerprint)
+    problem = _content_problem(np.asarray(image), region.spec, rots[0], query_options)
+    if problem is not None:
+        raise InputError(f"the query image is content-free over the fingerprint's region ({problem}); it holds no "
+                         "pattern to match")
     for rot in rots:
         q = prepare_query(image, region, sigma=sigma, rotation=rot, workers=workers, **query_options)
         score = _score(fingerprint, q.residual, q.intensity, metric, shift_range, exclusion, rot, workers)
@@ -460,6 +476,15 @@ def _account_rotations(score: MatchScore, n_rot: int) -> MatchScore:
     return MatchScore(score.metric, score.value, score.rotation, score.ncc, pce_result)
 
 
+def _content_problem(image: np.ndarray, region: str, rotation: int, options: dict[str, Any]) -> str | None:
+    """Why ``image`` turned by ``rotation`` holds no pattern over ``region``, or None (also when the region does not
+    fit: the scoring then says so, with the shapes)."""
+    try:
+        return region_content_problem(np.rot90(image, rotation % 4, axes=(0, 1)), region, **options)
+    except InputError:
+        return None
+
+
 class _PreparedImage:
     """A query image whose region residuals and spectra are computed once, on demand."""
 
@@ -470,6 +495,15 @@ class _PreparedImage:
         self.workers = workers
         self.options = options
         self._cache: dict[tuple[str, int], tuple[Query, _Spectrum | None]] = {}
+        self._content: dict[tuple[str, int], str | None] = {}
+
+    def content_problem(self, region: str, rotation: int = 0) -> str | None:
+        """Why the image, turned by ``rotation``, holds no pattern over ``region`` (None if it has some;
+        :func:`~forensics.prnu.fingerprint.region_content_problem`), computed once per region and rotation."""
+        key = (region, rotation % 4)
+        if key not in self._content:
+            self._content[key] = _content_problem(self.image, region, rotation, self.options)
+        return self._content[key]
 
     def get(self, region: str, rotation: int, need_spectrum: bool) -> tuple[Query, _Spectrum | None]:
         key = (region, rotation)
@@ -521,6 +555,10 @@ def _score_column(settings: _MatchSettings, item: Any) -> list[MatchScore]:
     column: list[MatchScore] = []
     for fp in fingerprints:
         rots = _rotations_for(settings.rotations, prepared.image.shape, fp)
+        problem = prepared.content_problem(fp.region, rots[0])
+        if problem is not None:  # no score at all: a number would be taken at face value
+            column.append(MatchScore(metric, math.nan, 0, math.nan, None, problem))
+            continue
         best: MatchScore | None = None
         for rot in rots:
             q, spec = prepared.get(fp.region, rot, metric == "pce")
@@ -591,6 +629,8 @@ def score_matrix(
     fingerprints = list(fingerprints)
     if not fingerprints:
         raise UsageError("no fingerprints to score against")
+    for i, fp in enumerate(fingerprints):
+        check_fingerprint(fp, f"fingerprint {i}")
     settings = _MatchSettings(tuple(fingerprints), metric, sigma, shift_range, exclusion, rotations, workers,
                               dict(query_options))
     ex = resolve(executor)
@@ -616,7 +656,8 @@ class SetMatch:
     """Every image of a set scored against one fingerprint, with a decision at a threshold (:func:`match_set`).
 
     ``scores`` holds one row per image: ``file``, ``score`` (the metric's value), ``ncc``, ``rotation``
-    (quarter turns), ``pce`` (:meth:`PceResult.to_dict` or None) and ``match`` (None without a threshold).
+    (quarter turns), ``pce`` (:meth:`PceResult.to_dict` or None), ``match`` (None without a threshold) and
+    ``excluded`` (why a content-free image was not scored: then ``score``, ``ncc`` and ``match`` are None).
     """
 
     fingerprint: str
@@ -632,10 +673,15 @@ class SetMatch:
         """Images reaching the threshold (None without one)."""
         return sum(1 for r in self.scores if r["match"]) if self.threshold is not None else None
 
+    @property
+    def excluded(self) -> list[dict[str, Any]]:
+        """The rows of content-free images (not scored)."""
+        return [r for r in self.scores if r.get("excluded") is not None]
+
     def to_dict(self) -> dict[str, Any]:
         return {"fingerprint": self.fingerprint, "set": self.set, "region": self.region, "metric": self.metric,
                 "threshold": self.threshold, "shift_search": self.shift_search, "n_images": len(self.scores),
-                "n_match": self.n_match, "scores": self.scores}
+                "n_match": self.n_match, "n_excluded": len(self.excluded), "scores": self.scores}
 
 
 def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, threshold: float | None = None,
@@ -664,19 +710,32 @@ def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, th
     ------
     UsageError
         A shift search with NCC.
+    InputError
+        Every image is content-free over the fingerprint's region (:mod:`forensics.io.content`); images that
+        are so among others are not scored (their rows say why).
     """
     _check_metric(metric)
     if metric == "ncc" and shift_range != 0:
         raise UsageError("--shift-range applies to PCE only; drop it or use --metric pce")
+    if threshold is not None and not math.isfinite(threshold):
+        raise UsageError(f"threshold={threshold}: give a finite number (e.g. 60 for PCE)")
     if threshold is None and metric == "pce":
         threshold = PCE_THRESHOLD
+    check_fingerprint(fingerprint, name or "fingerprint")
     scores, details = score_matrix([fingerprint], dataset.frames, metric, sigma=sigma, shift_range=shift_range,
                                    progress=progress, total=len(dataset), details=True, executor=executor)
     rows = []
     for frame, value, d in zip(dataset.frames, scores[0], details[0]):
-        decision = None if threshold is None else bool(value >= threshold)
-        rows.append({"file": frame.file, "score": float(value), "ncc": d.ncc, "rotation": d.rotation,
-                     "pce": d.pce.to_dict() if d.pce is not None else None, "match": decision})
+        decision = None if threshold is None or d.excluded is not None else bool(value >= threshold)
+        rows.append({"file": frame.file, "score": None if d.excluded is not None else float(value),
+                     "ncc": None if d.excluded is not None else d.ncc, "rotation": d.rotation,
+                     "pce": d.pce.to_dict() if d.pce is not None else None, "match": decision,
+                     "excluded": d.excluded})
+    excluded = [r for r in rows if r["excluded"] is not None]
+    if rows and len(excluded) == len(rows):
+        raise InputError(f"{dataset.root}: every one of its {len(rows)} frame(s) is content-free over the fingerprint's "
+                         f"region, so none can be scored (first, {rows[0]['file']}: {rows[0]['excluded']}); give "
+                         "exposed images")
     search = ("zero shift" if shift_range == 0 else
               "all circular shifts" if shift_range is None else f"shifts up to ±{shift_range}")
     return SetMatch(name or "fingerprint", str(dataset.root), fingerprint.region, metric, threshold,
