@@ -589,18 +589,18 @@ def same_device(
         are all content-free (constant, black or saturated: :mod:`forensics.io.content`; some such images
         are left out, with a warning).
     UsageError
-        Bad counts or options, or the two sets share images (one set given twice).
+        Bad counts or options, or both sets are the same images (sets sharing some images get a warning).
     """
     rng = as_generator(rng)
     _check_options(ageing_residual, options)
     ex = resolve(executor)
     region = parse_region(region)
     images_a, images_b = _open_sets(set_a, set_b, names)
-    _refuse_shared_images(images_a, images_b)
+    overlap = _shared_images(images_a, images_b)
     plans = [plan_set(len(s), rng, name=s.name, fingerprint_images=fingerprint_images, score_images=score_images,
                       ageing_fingerprints=ageing_fingerprints if ageing else 0, ageing_images=ageing_images)
              for s in (images_a, images_b)]
-    warnings = [w for p in plans for w in p.warnings]
+    warnings = [w for p in plans for w in p.warnings] + ([overlap] if overlap else [])
 
     # 1. the two fingerprints
     fps = [_build_fingerprint(s, p.fingerprint, region, fingerprint_sigma, ex, progress, f"fingerprint {s.name}",
@@ -726,23 +726,23 @@ def _score_set(images: ImageSet, indices: Sequence[int], own_fp: Fingerprint, ot
     return scores[:, 0].copy(), scores[:, 1].copy(), left_out
 
 
-def _refuse_shared_images(a: ImageSet, b: ImageSet) -> None:
-    """The protocol compares two sets: refuse one set given twice, or sets sharing image files.
+def _shared_images(a: ImageSet, b: ImageSet) -> str | None:
+    """The protocol compares two sets: refuse one set given twice; a warning when they share some image files.
 
     Raises
     ------
     UsageError
-        Naming the sets and the first shared file.
+        Both sets are the same files (by their resolved paths).
     """
     files_a = {os.path.realpath(src) for src in a.sources if os.path.isfile(src)}
     shared = [src for src in b.sources if os.path.isfile(src) and os.path.realpath(src) in files_a]
     if not shared:
-        return
-    if len(shared) == len(b) == len(a):
+        return None
+    if len(shared) == len(b) == len(a) == len(files_a):
         raise UsageError(f"{a.name} and {b.name} are the same {len(a)} images: the same-device test compares two "
                          "different sets; give two sets")
-    raise UsageError(f"{len(shared)} image(s) are in both {a.name} and {b.name} (first: {shared[0]}): the same-device "
-                     "test needs disjoint sets; remove the shared images from one of them")
+    return (f"{len(shared)} image(s) are in both {a.name} and {b.name} (first: {shared[0]}): a shared image is "
+            "scored against a fingerprint it may have helped build, which pushes the EER towards 50 %")
 
 
 def _power_warning(verdict: EerVerdict, score_images: int, level: float) -> str:
