@@ -650,11 +650,15 @@ def test_aligned_images_keep_their_own_share_of_the_budget(geometry, mixed_sizes
 def test_split_budget_null_is_calibrated(mixed_sizes):
     """D25: images of 20 devices outside the set, three each, aligned against the three same-size fingerprints
     and searched in the two larger ones: the weighted split keeps the corrected p_FA at most uniform
-    (99.9 % binomial quantile of 60 queries at 0.05, 0.2 and 0.5), and nothing is attributed."""
+    (99.9 % binomial quantile of 60 queries at 0.05, 0.2 and 0.5; measured 2, 16 and 35 against 3, 12 and 30
+    expected), and nothing is attributed.  Both hypotheses are exercised: the best peak was an aligned one for
+    32 of the 60 queries, a crop for 28 (each half of the budget)."""
     queries = [image for k, device in enumerate(devices(80, 20, GEO_SHAPE)) for image in images(device, [80, k], 3)]
     result = identify(queries, mixed_sizes["fps"], pfa=PFA)
     _assert_null_calibrated(result)
     assert all(q.budget["aligned"]["n_tests"] == 3 for q in result.queries)
+    aligned = sum(q.best.method == "aligned" for q in result.queries)
+    assert 15 <= aligned <= 45  # each hypothesis holds the best peak about half the time (binomial 60, ½: ±4σ)
 
 
 @pytest.mark.realdata
