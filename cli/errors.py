@@ -18,6 +18,7 @@ exception                                      exit  message
 ``json.JSONDecodeError``
 ``MemoryError``                                1     out of memory, and what to do
 ``KeyboardInterrupt``                          130   interrupted
+``Terminated`` (SIGTERM, handled as Ctrl-C)    143   terminated by SIGTERM
 anything else                                  1     ``internal error: …`` (a bug: please report it)
 =============================================  ====  ====================================================
 
@@ -32,6 +33,7 @@ import os
 import zipfile
 
 from forensics._shared.errors import InputError, UsageError
+from forensics._shared.lifetime import Terminated
 from forensics.cli.common import EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE
 
 DEBUG_ENV = "FORENSICS_DEBUG"
@@ -94,6 +96,8 @@ def describe(exc: BaseException) -> tuple[int, str]:
         return EXIT_USAGE, str(exc)
     if isinstance(exc, InputError):
         return EXIT_BAD_INPUT, str(exc)
+    if isinstance(exc, Terminated):  # SIGTERM, handled as Ctrl-C: 128 + the signal's number (143)
+        return exc.exit_code, str(exc)
     if isinstance(exc, KeyboardInterrupt):
         return EXIT_INTERRUPTED, "interrupted"
     if isinstance(exc, OSError):

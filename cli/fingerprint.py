@@ -36,7 +36,8 @@ def register(sub) -> None:
         fill("Maximum-likelihood fingerprint K = Σ W·I / Σ I² from the wavelet noise residuals W of every image in SET "
         "(streamed: one image in memory at a time; saturated pixels excluded), then zero-mean and DFT Wiener "
         "filtering.  20–50 bright, flat, unsaturated images (sky, wall, flat field) give the best fingerprint.  "
-        "All images must have one size and orientation.  The images are summed in chunks on local worker "
+        "All images must have one size and orientation; content-free ones (constant, black or saturated) are "
+        "left out with a warning.  The images are summed in chunks on local worker "
         "processes (or a Dask cluster); the result does not depend on how many.  An interrupted build resumes "
         "from the chunks kept in .FP.partial/ beside the output when run again.", 100))
     build.add_argument("set", metavar="SET", help="dataset folder (images, optional manifest.csv)")
@@ -149,18 +150,19 @@ def run_build(args: argparse.Namespace) -> int:
 
     region = parse_region(args.region)
     out = Path(args.output)
-    refuse_existing(out, args.force)  # before hours of work, not after
+    refuse_existing(out, args.force, file=True)  # before hours of work, not after
     ds = open_input(args, args.set)
     info(args, f"building a fingerprint from {len(ds)} images of {ds.root} ({region.spec}) …")
     # Finished chunks are kept in .FP.partial beside the output until it is written: an interrupted build resumes.
     partial = out.with_name(f".{out.name}.partial")
-    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma),
-                                                        args.force) as checkpoint:
+    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma), args.force,
+                                                        inputs=[f.path for f in ds.frames]) as checkpoint:
         fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), executor=ex,
-                               checkpoint=checkpoint, **raw_options(ds.frames[0].path))
+                               checkpoint=checkpoint, name=str(ds.root), **raw_options(ds.frames[0].path))
         fp.save(out, force=args.force)
         execution = ex.info().to_dict()
     excluded = fp.parameters.get("excluded_pixel_fraction", 0.0)
+    _warn_content_free(fp.parameters.get("excluded_frames", []), len(ds), str(ds.root))
     if fp.n_images < 10:
         warn(f"only {fp.n_images} images: a fingerprint from fewer than about 20 is noisy and matches weakly")
 
@@ -176,6 +178,13 @@ def run_build(args: argparse.Namespace) -> int:
     emit(args, summary, lambda: {"output": str(out), **fp.to_dict(), "k_std": float(fp.K.std()),
                                  "execution": execution})
     return 0
+
+
+def _warn_content_free(frames: list[dict[str, str]], total: int, where: str) -> None:
+    """One warning for the content-free frames a build or a scoring left out (the first one's reason)."""
+    if frames:
+        warn(f"{len(frames)} of {total} frames of {where} are content-free and were left out (first, "
+             f"{frames[0]['file']}: {frames[0]['reason']})")
 
 
 def _build_config(ds: Any, region: Any, sigma: float) -> dict[str, Any]:
@@ -208,6 +217,7 @@ def run_match(args: argparse.Namespace) -> int:
         result = match_set(fp, ds, args.metric, threshold=args.threshold, shift_range=args.shift_range,
                            sigma=args.sigma, progress=progress_for(args), name=str(args.fingerprint), executor=ex)
         execution = ex.info().to_dict()
+    _warn_content_free([{"file": r["file"], "reason": r["excluded"]} for r in result.excluded], len(ds), str(ds.root))
     payload = result.to_dict()
 
     def summary() -> str:
@@ -241,6 +251,10 @@ def _match_table(payload: dict[str, Any]) -> str:
     cols += f"  {'rot':>3}  decision"
     lines = [head, cols]
     for r in payload["scores"]:
+        if r.get("excluded") is not None:  # not scored: no number to show
+            lines.append(f"{r['file']:<{width}}  {'—':>10}" + (f"  {'—':>8}  {'—':>8}" if metric == "pce" else "")
+                         + f"  {'':>3}  content-free")
+            continue
         line = f"{r['file']:<{width}}  {r['score']:>10.4g}"
         if metric == "pce":
             p = r["pce"] or {}
@@ -294,8 +308,8 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     """
     import os
     import shutil
-    import tempfile
 
+    from forensics._shared.atomic import mkdtemp_like_mkdir
     from forensics.prnu.database import FingerprintDatabase
 
     def add(db: FingerprintDatabase) -> tuple[list[Any], set[str], int]:
@@ -307,7 +321,7 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     if folder.exists():
         return add(FingerprintDatabase(folder, create=True))  # an empty folder becomes a database
     folder.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
+    stage = mkdtemp_like_mkdir(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent)  # umask mode
     try:
         result = add(FingerprintDatabase(stage, create=True))
         try:

@@ -17,6 +17,7 @@ import warnings
 from collections.abc import Iterator
 
 from forensics import __version__
+from forensics._shared.lifetime import sigterm_as_interrupt
 from forensics.cli.common import EXIT_FAILURE, EXIT_USAGE, guard_outputs, say
 from forensics.cli.errors import debug, describe
 
@@ -40,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
         "sensor ageing, dating, and checking a physical sensor model against measurements.",
         epilog="example:\n  forensics demo --out report\n\nRun 'forensics COMMAND --help' for each command.\n\n"
                "exit status: 0 done, 1 failed (an internal error: please report it; or out of memory),\n"
-               "  2 usage error, 3 bad input data or files, 130 interrupted\n"
+               "  2 usage error, 3 bad input data or files, 130 interrupted (Ctrl-C), 143 terminated (SIGTERM)\n"
                "environment: FORENSICS_DEBUG=1 shows the traceback of a failure; FORENSICS_MEMORY_LIMIT (e.g. 64G)\n"
                "  and FORENSICS_MAX_AGES (default 1000) bound what one request may ask for",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -96,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     with _terminal():
         try:
             guard_outputs(args)  # before any work, and before anything is replaced or deleted
-            return int(args.handler(args) or 0)
+            with sigterm_as_interrupt():  # SIGTERM (timeout, systemd, schedulers) cleans up as Ctrl-C does
+                return int(args.handler(args) or 0)
         except BrokenPipeError:
             # The reader went away (``forensics … | head``): nobody is left to read a message.
             with contextlib.suppress(OSError, ValueError):

@@ -9,8 +9,12 @@ from forensics._shared.arrays import bits_full_scale, full_scale, grey_luma, gre
 from forensics._shared.atomic import (
     atomic_directory,
     atomic_file,
+    current_umask,
+    mkdtemp_like_mkdir,
+    mkstemp_like_open,
     refuse_existing,
     refuse_inputs,
+    write_bytes,
     write_json,
     write_text,
 )
@@ -25,7 +29,8 @@ from forensics._shared.text import printable
 
 __all__ = [
     "bits_full_scale", "full_scale", "grey_luma", "grey_mean", "infer_full_scale",
-    "atomic_directory", "atomic_file", "refuse_existing", "refuse_inputs", "write_json", "write_text",
+    "atomic_directory", "atomic_file", "current_umask", "mkdtemp_like_mkdir", "mkstemp_like_open", "refuse_existing",
+    "refuse_inputs", "write_bytes", "write_json", "write_text",
     "ForensicsError", "InputError", "UsageError",
     "median_filter",
     "dumps", "to_jsonable",

@@ -499,7 +499,7 @@ def run_impact(
               "models": [s.model.to_dict() for s in sensors], "ages": ages, "matchers": names,
               "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
               "seed": seed_record(rng), "forensics_version": __version__}
-    store = Checkpoint(checkpoint, config) if checkpoint is not None else None
+    store = Checkpoint(checkpoint, config, inputs=job.paths) if checkpoint is not None else None
     found, resumed = _run_tasks(_usable_executor(resolve(executor), job), job, store, progress)
     units = [u for s in range(len(sensors)) for a in range(len(ages)) for u in found[s, a]]
     result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,

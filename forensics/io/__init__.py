@@ -1,7 +1,8 @@
 """Getting data in: images (OpenImageIO, rawpy; native dtype, raw mosaics with their CFA), dataset folders
 with an optional ``manifest.csv`` (frames, capture dates, conditions, epochs; the manifest read strictly),
 capture dates and their plausible range, one-pass streaming stack statistics (mean, variance, minimum,
-maximum per pixel), and the summaries behind ``forensics info``.
+maximum per pixel), whether a frame holds any content (constant, black or saturated frames), and the
+summaries behind ``forensics info``.
 """
 import lazy_loader as _lazy
 
@@ -10,6 +11,7 @@ import lazy_loader as _lazy
 __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
+        "content": ["MIN_EXPOSED", "FrameContent", "content_problem", "frame_content"],
         "dataset": ["Dataset", "Frame", "list_images", "open_dataset", "split_epochs"],
         "dates": ["FIRST_YEAR", "LAST_YEAR", "decimal_year", "from_decimal_year", "parse_captured"],
         "manifest": ["ManifestRow", "read_manifest", "write_manifest"],

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from forensics._shared.atomic import refuse_existing
+from forensics._shared.atomic import mkstemp_like_open, refuse_existing
 from forensics._shared.errors import InputError
 from forensics._shared.limits import require_pixels
 from forensics._shared.text import printable
@@ -444,7 +444,7 @@ def write_image(
     for key, value in (metadata or {}).items():
         spec.attribute(key, value)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)
+    fd, tmp = mkstemp_like_open(prefix=f".{path.stem}.", suffix=f".part{ext}", dir=path.parent)  # umask mode
     os.close(fd)
     try:
         _write_verified(tmp, spec, np.ascontiguousarray(image.reshape(image.shape[0], image.shape[1], channels)), path)

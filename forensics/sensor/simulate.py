@@ -214,7 +214,8 @@ def age_dataset(
               "sensor": sensor_name, "seed": seed, "t0": t0, "ages": list(ages), "model": model.to_dict(),
               "source": str(source.root), "forensics_version": __version__}
     config = {**sensor, "files": [f.file for f in source.frames], "outputs": files}
-    with resumable_directory(out, config, force=force) as (work, checkpoint):
+    # The sources' content digests join the stamp: a source replaced after an interruption is not mixed in.
+    with resumable_directory(out, config, force=force, inputs=[f.path for f in source.frames]) as (work, checkpoint):
         for name in names:
             (work / name).mkdir(exist_ok=True)
         job = _AgeingJob(device, contexts, names, rng, first_dtype.str, tuple(shape), str(work))
