@@ -322,13 +322,18 @@ def open_dataset(folder: str | os.PathLike, allow_outside: bool = False) -> Data
         if not paths:
             raise InputError(f"{printable(str(root))}: no images found; add PNG/TIFF/JPEG/BMP/raw/FITS files or a "
                              "manifest.csv")
-        frames = [Frame(path=p, file=p.name) for p in paths]
-        for frame in frames:
-            if is_fits(frame.path):  # the header is the manifest: its conditions are read now (no pixels decoded)
-                frame.info()
-        return Dataset(root, frames, has_manifest=False)
+        return Dataset(root, _with_fits_headers([Frame(path=p, file=p.name) for p in paths]), has_manifest=False)
     frames = [_frame(row) for row in read_manifest(root, manifest, allow_outside)]
-    return Dataset(root, frames, has_manifest=True)
+    return Dataset(root, _with_fits_headers(frames), has_manifest=True)
+
+
+def _with_fits_headers(frames: list[Frame]) -> list[Frame]:
+    """FITS frames with their header's conditions read now (no pixels decoded), filling what the manifest (if any)
+    leaves empty: grouping by condition reads the fields directly, so they must be there before any grouping."""
+    for frame in frames:
+        if is_fits(frame.path):
+            frame.info()
+    return frames
 
 
 def _frame(row: ManifestRow) -> Frame:
