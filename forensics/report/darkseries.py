@@ -146,10 +146,15 @@ def dark_report(result: DarkDetectionResult, title: str = "Dark-frame series", s
     rows = []
     for g in fit.groups:
         lo, hi = g.median_rate_ci()
-        rows.append([g.label, g.temperature_c, g.temperature_se, len(g.frames), g.n_bias, g.bias_level, g.read_noise,
-                     g.offset_jitter, g.median_rate, f"[{lo:.4g}, {hi:.4g}]", g.outliers, int(g.misfit.sum())])
-    rep.table(["group", "T (°C)", "± (°C)", "frames", "biases", "bias (ADU)", "read noise (ADU)", "offset jitter (ADU)",
-               "median rate (ADU/s)", "95 %", "cosmic-ray samples", "misfit pixels"], rows)
+        spread = [g.read_noise, *g.read_noise_frames]
+        rows.append([g.label, g.temperature_c, g.temperature_se, len(g.frames), g.n_bias, g.bias_level,
+                     g.bias_level_se, g.read_noise, f"[{min(spread):.4g}, {max(spread):.4g}]", g.offset_jitter,
+                     g.median_rate, f"[{lo:.4g}, {hi:.4g}]", g.outliers, int(g.misfit.sum())])
+    rep.table(["group", "T (°C)", "± (°C)", "frames", "biases", "bias (ADU)", "± (ADU)", "read noise (ADU)",
+               "its range (group, each bias)", "offset jitter (ADU)", "median rate (ADU/s)", "95 %",
+               "cosmic-ray samples", "misfit pixels"], rows,
+              caption="± is one standard error; the read noise's range spans the group's estimate (every pixel's "
+                      "temporal variance over the biases) and each bias frame's against the pixels' offsets")
     gains = [[k.replace("_", " "), v["gain_e_per_adu"], f"[{v['ci'][0]:.4g}, {v['ci'][1]:.4g}]", v.get("mean_signal_adu")]
              for k, v in fit.gain.items() if isinstance(v, dict)]
     if fit.gain.get("header_e_per_adu"):

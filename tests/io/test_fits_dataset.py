@@ -98,3 +98,18 @@ def test_a_bad_frame_in_a_folder_is_named_in_one_line(folder):
     with pytest.raises(InputError) as err:
         open_dataset(folder)
     assert "f-broken.fits" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_header_that_contradicts_its_data_is_refused_in_one_line(tmp_path, cli):
+    path = tmp_path / "dark.fits"
+    _hdu("Dark Frame", 60.0, -5.0, -5.0).writeto(path)
+    raw = path.read_bytes()
+    card = b"NAXIS2  =                    8"
+    assert raw.count(card) == 1
+    lying = tmp_path / "lying.fits"  # the header claims 800 rows (16 kB, past the file's 2880-byte data block)
+    lying.write_bytes(raw.replace(card, b"NAXIS2  =                  800"))
+    code, out, err = cli("info", str(tmp_path / "lying.fits"))
+    assert code == 0 and "800" in out  # the header alone is read: it describes what it claims
+    (tmp_path / "dark.fits").unlink()
+    code, _, err = cli("defects", "detect", str(tmp_path), "--workers", "1", "--quiet")
+    assert code == 3 and "lying.fits" in err and len(err.strip().splitlines()) == 1
