@@ -175,7 +175,7 @@ def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | No
                 f"[{r['reference_interval'][0]:.4g}, {r['reference_interval'][1]:.4g}]", r["source"],
                 "yes" if r["agree"] else "no"] for r in table])
     rep.extend(dark_report(result, title="Dark-frame series", source=REAL_SERIES if real else "synthetic series"),
-               prefix="ccd_")
+               prefix="")  # the demo page prefixes the section's name
     lo, hi = result.count_ci
     rates = ", ".join(f"{g.median_rate:.3g} ADU/s at {g.temperature_c:+.1f} °C" for g in result.series.groups)  # type: ignore[union-attr]
     agree = sum(r["agree"] for r in table)
