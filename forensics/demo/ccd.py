@@ -35,8 +35,9 @@ T_REF_C = -10.0
 
 @dataclass(frozen=True)
 class Reference:
-    """An independent figure of one ``kind`` (``rate``, ``bias_all``, ``read_noise``, ``gain``, ``hot_pixels``), for the group at
-    ``set_point`` (None: any group), known to within ``[lo, hi]`` (its rounding, or the range it was given as)."""
+    """An independent figure of one ``kind`` (``rate``, ``bias_all``, ``read_noise``, ``gain``, ``hot_pixels``), for
+    the group at ``set_point`` (None: any group), known to within ``[lo, hi]`` (its rounding, or the range it was
+    given as)."""
 
     kind: str
     set_point: float | None
@@ -164,20 +165,21 @@ def run(workdir: Path, rng: RngLike, progress: Progress, executor: Executor | No
                  "(FITS with their headers, no manifest): biases and darks of 10–300 s at −10 and −5 °C, one frame "
                  "per exposure, and ten flat fields for the gain. Figures against issue 28's independent ones.")
     else:
-        rep.text(f"The real series ({REAL_SERIES}) is not on this machine (looked in {shared_data()}); this section "
-                 "runs instead on a small synthetic FITS series (forensics.fixtures.darkseries: a 96×64 CCD with a "
-                 "lognormal bulk, a hot tail doubling more slowly, cosmic rays, thermistor noise) and compares its "
-                 "figures with the truth it was made from.", note=True)
+        rep.text(f"The real series ({REAL_SERIES}) is not on this machine (looked in {shared_data()}); this "
+                 "section runs instead on a small synthetic FITS series (forensics.fixtures.darkseries: a 96×64 CCD "
+                 "with a lognormal bulk, a hot tail doubling more slowly, cosmic rays, thermistor noise) and compares "
+                 "its figures with the truth it was made from.", note=True)
     rep.heading("Fitted figures against " + ("the independent ones" if real else "the truth"))
-    rep.table(["quantity", "measured", "95 % (read noise: range of its estimates)", "reference", "its interval", "source",
-               "agree"],
+    rep.table(["quantity", "measured", "95 % (read noise: range of its estimates)", "reference", "its interval",
+               "source", "agree"],
               [[r["quantity"], r["measured"], f"[{r['ci'][0]:.4g}, {r['ci'][1]:.4g}]", r["reference"],
                 f"[{r['reference_interval'][0]:.4g}, {r['reference_interval'][1]:.4g}]", r["source"],
                 "yes" if r["agree"] else "no"] for r in table])
     rep.extend(dark_report(result, title="Dark-frame series", source=REAL_SERIES if real else "synthetic series"),
                prefix="")  # the demo page prefixes the section's name
     lo, hi = result.count_ci
-    rates = ", ".join(f"{g.median_rate:.3g} ADU/s at {g.temperature_c:+.1f} °C" for g in result.series.groups)  # type: ignore[union-attr]
+    groups = result.series.groups  # type: ignore[union-attr]
+    rates = ", ".join(f"{g.median_rate:.3g} ADU/s at {g.temperature_c:+.1f} °C" for g in groups)
     agree = sum(r["agree"] for r in table)
     summary = [f"ccd ({'real 2017 STL-1001E' if real else 'synthetic FITS; real data absent'}): median dark rate "
                f"{rates}; {result.count()} hot pixels above {THRESHOLD_ADU_PER_S:g} ADU/s at {T_REF_C:+g} °C "
