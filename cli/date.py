@@ -16,7 +16,7 @@ from forensics.cli.common import (
     progress_for,
     warn,
 )
-from forensics.cli.defects import add_detection_options, detection_kwargs
+from forensics.cli.defects import add_dark_options, add_detection_options, dark_settings, detection_kwargs
 
 
 def register(sub) -> None:
@@ -34,6 +34,7 @@ def register(sub) -> None:
     src.add_argument("--reference", nargs="+", metavar="SET", help="two or more reference sets of the device")
     src.add_argument("--model", metavar="FILE", help="growth model saved by 'forensics defects growth -o FILE'")
     add_detection_options(parser)
+    add_dark_options(parser)
     add_input_options(parser)
     add_execution_options(parser)
     add_output_options(parser)
@@ -60,14 +61,26 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--reference needs at least two sets taken at different dates")
     with executor_for(args) as ex:
         if not args.model:
-            epochs = epochs_from_datasets([open_input(args, p) for p in args.reference], progress=progress,
-                                          executor=ex, **detection_kwargs(args))
+            from forensics.defects.darkdetect import dark_epochs, is_dark_series
+
+            references = [open_input(args, p) for p in args.reference]
+            if all(is_dark_series(ds) for ds in references):
+                epochs = dark_epochs(references, dark_settings(args), progress=progress, executor=ex)
+            else:
+                epochs = epochs_from_datasets(references, progress=progress, executor=ex, **detection_kwargs(args))
             growth = estimate_growth(epochs)
             for message in dict.fromkeys(growth.warnings):
                 warn(message)
             model = growth.model()
         if query.is_dir():
             result = date_dataset(model, open_input(args, query), progress=progress, executor=ex)
+        elif model.detection.get("method") == "dark_series":  # one dark frame against a dark-series model
+            from forensics.defects.darkdetect import frame_growth_model
+            from forensics.io.fits import read_fits
+
+            frame = read_fits(query)
+            result = date_image(frame_growth_model(model, frame.header.exposure_s, frame.header.temperature_c),
+                                frame.data)
         else:
             image = read_image(query)
             cfa = read_raw(query).cfa_pattern if is_raw(query) else None

@@ -14,7 +14,7 @@ def register(sub) -> None:
     parser.add_argument("--out", default="report", help="report folder (default ./report)")
     parser.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     parser.add_argument("--only", action="append", metavar="SECTION",
-                        help="run only this section (repeatable): ageing, prnu, attribution, defects, check, impact")
+                        help="run only this section (repeatable): ageing, prnu, attribution, defects, ccd, check, impact")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--force", action="store_true", default=True,

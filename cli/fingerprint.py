@@ -146,7 +146,7 @@ def _shift_range(text: str) -> int | None:
 def run_build(args: argparse.Namespace) -> int:
     from forensics._shared.atomic import refuse_existing
     from forensics._shared.parallel import resumable_checkpoint
-    from forensics.prnu.fingerprint import build_fingerprint, parse_region
+    from forensics.prnu.fingerprint import build_fingerprint, parse_region, raw_options
 
     region = parse_region(args.region)
     out = Path(args.output)
@@ -158,7 +158,7 @@ def run_build(args: argparse.Namespace) -> int:
     with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma), args.force,
                                                         inputs=[f.path for f in ds.frames]) as checkpoint:
         fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), executor=ex,
-                               checkpoint=checkpoint, name=str(ds.root))
+                               checkpoint=checkpoint, name=str(ds.root), **raw_options(ds.frames[0].path))
         fp.save(out, force=args.force)
         execution = ex.info().to_dict()
     excluded = fp.parameters.get("excluded_pixel_fraction", 0.0)

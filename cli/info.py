@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
         s = summary
         lines = [f"{s.root}: {s.n_images} images, {'×'.join(map(str, s.shape[1::-1]))}"
                  f"{'×' + str(s.shape[2]) if len(s.shape) == 3 else ''} {s.dtype}"
-                 f" ({'manifest.csv' if s.has_manifest else 'no manifest; metadata from EXIF'})",
+                 f" ({'manifest.csv' if s.has_manifest else 'no manifest; metadata from EXIF or FITS headers'})",
                  f"devices: {', '.join(str(d) for d in s.devices)}"]
         if s.captured:
             lines.append(f"captured: {s.captured[0]:.3f} … {s.captured[1]:.3f} (decimal years)")
@@ -44,6 +44,17 @@ def run(args: argparse.Namespace) -> int:
             lines.append(f"  epoch {e['start']:.3f}–{e['end']:.3f}: {e['n']} images")
         if len(s.conditions) > 1 or any(v is not None for k, v in s.conditions[0].items() if k != "n"):
             lines.append(f"{len(s.conditions)} acquisition conditions (exposure, ISO, temperature, subject)")
+        if s.frame_types:
+            lines.append(f"{'frame type':>10} {'exposure (s)':>12} {'set point (°C)':>14} {'frames':>6} "
+                         f"{'measured (°C)':>16}")
+        for row in s.frame_types:
+            temps = row["temperature_c"]
+            measured = "?" if temps is None else f"{temps[0]:+.2f} … {temps[1]:+.2f}"
+            setpoint = "?" if row["set_temperature_c"] is None else f"{row['set_temperature_c']:+.1f}"
+            exposure = "?" if row["exposure_s"] is None else f"{row['exposure_s']:g}"
+            lines.append(f"{row['frame_type']:>10} {exposure:>12} {setpoint:>14} {row['n']:>6} {measured:>16}")
+            if row["off_set_point"]:
+                lines.append(f"  more than 1 °C off the set point: {', '.join(row['off_set_point'])}")
         return "\n".join(lines)
 
     emit(args, lambda: printable(text()), summary.to_dict())

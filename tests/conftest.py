@@ -44,6 +44,14 @@ def dresden_or_skip() -> Path:
     return path
 
 
+def shared_or_skip(name: str) -> Path:
+    """A file or folder of ``../shared/data`` (real data whose terms forbid copies in the repository), or skip."""
+    path = SHARED_DATA / name
+    if not path.exists():
+        pytest.skip(f"real data not found at {path} (present in CI; absent on a fresh machine)")
+    return path
+
+
 @pytest.fixture(scope="module")
 def dask_cluster():
     """A ``dask.distributed.LocalCluster`` with two single-threaded worker processes, one per test module.

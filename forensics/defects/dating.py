@@ -177,6 +177,11 @@ def date_dataset(model: GrowthModel, ds: Any, level: float = LEVEL, progress: Pr
     if device and model.device and device != model.device:
         raise InputError(f"{ds.root} is from device '{device}' but the growth model is for '{model.device}'")
     det = model.detection
+    if det.get("method") == "dark_series":  # a dark-series model: the query is a dark series, called alike
+        from forensics.defects.darkdetect import DarkSettings, detect_dark_dataset
+
+        query = detect_dark_dataset(ds, DarkSettings.from_dict(det), progress=progress, executor=executor)
+        return date_set(model, query, level)
     query = detect_dataset(ds, q=int(det.get("q", 9)), sigma=det.get("sigma"), tau=det.get("tau"),
                            mask=model.mask_spec(), stuck_tolerance=float(det.get("stuck_tolerance", 0.0)),
                            progress=progress, executor=executor)

@@ -237,6 +237,11 @@ class DetectionResult:
                 else self.fits[0].tau, "q": self.q, "mask": self.mask_spec.describe(),
                 "stuck_tolerance": self.stuck_tolerance, "analysed_megapixels": self.megapixels}
 
+    def detection_settings(self) -> dict[str, Any]:
+        """The settings that repeat this detection on another set (kept in a growth model for dating)."""
+        return {"q": self.q, "sigma": self.sigma, "tau": self.tau_given, "mask": self.mask_spec.to_dict(),
+                "stuck_tolerance": self.stuck_tolerance}
+
     def defect_rows(self) -> list[dict[str, Any]]:
         names = [f.name for f in self.fits]
         rows = []

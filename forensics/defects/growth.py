@@ -330,8 +330,7 @@ def estimate_growth(epochs: Sequence[Epoch], level: float = LEVEL, z_recheck: fl
     threshold["tau_per_epoch"] = [ep.detection.tau for ep in epochs]
     threshold["z_recheck"] = z_recheck
     warnings = [w for ep in epochs for w in ep.detection.warnings]
-    settings = {"q": det.q, "sigma": det.sigma, "tau": det.tau_given, "mask": det.mask_spec.to_dict(),
-                "stuck_tolerance": det.stuck_tolerance}
+    settings = det.detection_settings()
     catalogue = build_catalogue(epochs, z_recheck)
     return GrowthResult(dates, [e.label for e in epochs], det.shape, area, threshold, kinds[PARTIAL], kinds[STUCK],
                         paper_estimate(epochs[0].detection, epochs[-1].detection, dates[0], dates[-1]),

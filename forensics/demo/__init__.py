@@ -1,7 +1,7 @@
 """``forensics demo``: every capability of the toolkit, run end to end on built-in data.
 
 The demo is a sequence of sections, one module each in this package
-(``ageing``, ``prnu``, ``attribution``, ``defects``, ``check``, ``impact``).  A section module defines::
+(``ageing``, ``prnu``, ``attribution``, ``defects``, ``ccd``, ``check``, ``impact``).  A section module defines::
 
     TITLE: str
     def run(workdir: Path, rng: RngLike, progress: Progress) -> DemoSection

@@ -17,7 +17,7 @@ from forensics.report.demo import demo_page
 from forensics.report.html import Report
 
 
-SECTIONS = ("ageing", "prnu", "attribution", "defects", "check", "impact")
+SECTIONS = ("ageing", "prnu", "attribution", "defects", "ccd", "check", "impact")
 _PACKAGE = "forensics.demo"
 
 

@@ -9,7 +9,7 @@ The manifest has a header row and the columns
 ``captured``   ISO 8601 date or datetime (``2009-07-01``, ``20090701``,
                ``2009-07-01T12:30:00``) or a decimal year (``2009.5``), between 1975 and
                2200 (:mod:`forensics.io.dates` says why)
-``exposure_s`` exposure time in seconds (above 0)
+``exposure_s`` exposure time in seconds (0 for a bias frame, else above 0)
 ``iso``        ISO sensitivity (above 0)
 ``temperature_c`` sensor or ambient temperature in °C (above absolute zero, at most 150)
 ``subject``    what the frame shows (free text); ``dark`` (any case) means the frame
@@ -26,8 +26,13 @@ Any other column is kept in :attr:`Frame.extra`.  The manifest is read strictly
 (:mod:`forensics.io.manifest`): UTF-8, well-formed CSV, each column and each image
 named once, every value in its range.  A value missing from the
 manifest (or every value, when there is no manifest) is taken from the image's
-EXIF where the file has it.  Without a manifest, every image file directly in
-the folder is used, in name order.
+EXIF where the file has it, or from a FITS frame's header: ``captured`` from
+DATE-OBS, ``exposure_s`` from EXPTIME (0 for a bias), ``temperature_c`` from the
+measured CCD-TEMP, ``subject`` from IMAGETYP (bias and dark frames are ``dark``,
+flats ``flat``, lights ``light``), ``device`` from INSTRUME and its serial, and
+the further columns ``frame_type`` (bias, dark, flat, light), ``set_temperature_c``
+(SET-TEMP) and ``gain_e_per_adu`` (EGAIN).  Without a manifest, every image file
+directly in the folder is used, in name order.
 
 Frames are loaded lazily: iterating over a dataset never holds more than one
 image in memory.
@@ -46,6 +51,7 @@ from forensics._shared.errors import InputError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.text import printable
 from forensics.io.dates import decimal_year
+from forensics.io.fits import is_fits
 from forensics.io.images import IMAGE_EXTENSIONS, ImageInfo, read_image, read_info
 from forensics.io.manifest import MANIFEST, ManifestRow, read_manifest
 
@@ -54,6 +60,9 @@ from forensics.io.dates import from_decimal_year, parse_captured  # noqa: E402,F
 from forensics.io.manifest import STANDARD_COLUMNS, write_manifest  # noqa: E402,F401  (re-exported)
 #: The ``subject`` of frames taken without light (compared case-insensitively).
 DARK_SUBJECT = "dark"
+#: A FITS frame type (IMAGETYP) as a ``subject``: biases and darks are both taken without light (a bias is a dark
+#: frame of exposure 0, ``exposure_s`` = 0); the column ``frame_type`` keeps them apart.
+FRAME_SUBJECTS = {"bias": DARK_SUBJECT, "dark": DARK_SUBJECT, "flat": "flat", "light": "light"}
 #: The optional manifest column that tells light levels apart (an extra column: kept in :attr:`Frame.extra`).
 LIGHT_COLUMN = "light"
 
@@ -118,11 +127,28 @@ class Frame:
                 self._exposure_s = info.exposure_s
             if self._iso is None:
                 self._iso = info.iso
-            if self.device is None and info.serial:  # a body serial identifies a device; make/model alone do not
+            if self.device is None and info.extra.get("device"):  # FITS: INSTRUME and its serial
+                self.device = info.extra["device"]
+            elif self.device is None and info.serial:  # a body serial identifies a device; make/model alone do not
                 self.device = f"{info.make or ''} {info.model or ''} #{info.serial}".strip()
+            if "frame_type" in info.extra:
+                self._take_fits(info.extra)
             self._exif, self._exif_done = info, True
         assert self._exif is not None
         return self._exif
+
+    def _take_fits(self, extra: dict[str, Any]) -> None:
+        """A FITS header's conditions where the manifest gives none: the measured temperature, the frame type as the
+        ``subject`` (bias and dark frames are ``dark``: taken without light) and as ``frame_type``, the set point
+        and the gain as further columns."""
+        if self.temperature_c is None and extra.get("temperature_c") is not None:
+            self.temperature_c = float(extra["temperature_c"])
+        kind = extra.get("frame_type")
+        if self.subject is None and kind:
+            self.subject = FRAME_SUBJECTS.get(kind, kind)
+        for column in ("frame_type", "set_temperature_c", "gain_e_per_adu"):
+            if not self.extra.get(column) and extra.get(column) is not None:
+                self.extra[column] = str(extra[column])
 
     def _value(self, name: str) -> float | None:
         if getattr(self, name) is None and not self._exif_done:
@@ -152,10 +178,12 @@ class Frame:
         """A field by manifest column name (standard or extra)."""
         if name in ("captured", "exposure_s", "iso"):
             return getattr(self, name)
-        if name == "device" and self.device is None and not self._exif_done:
+        if name in ("device", "subject", "temperature_c") and getattr(self, name) is None and not self._exif_done:
             self.info()
         if name in ("file", "device", "subject", "temperature_c"):
             return getattr(self, name)
+        if name not in self.extra and not self._exif_done:
+            self.info()  # a FITS header's further columns (frame_type, set_temperature_c, gain_e_per_adu)
         return self.extra.get(name)
 
 
@@ -258,9 +286,11 @@ class Dataset:
 
 
 def list_images(folder: Path) -> list[Path]:
-    """Image files directly in ``folder`` (by extension), hidden files skipped, in name order."""
+    """Image files directly in ``folder`` (by extension; FITS by its whole suffix, e.g. ``.fits.fz``), hidden files
+    skipped, in name order."""
     return sorted(
-        p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
+        p for p in folder.iterdir()
+        if p.is_file() and not p.name.startswith(".") and (p.suffix.lower() in IMAGE_EXTENSIONS or is_fits(p))
     )
 
 
@@ -290,10 +320,20 @@ def open_dataset(folder: str | os.PathLike, allow_outside: bool = False) -> Data
     if not os.path.lexists(manifest):
         paths = list_images(root)
         if not paths:
-            raise InputError(f"{printable(str(root))}: no images found; add PNG/TIFF/JPEG/BMP/raw files or a manifest.csv")
-        return Dataset(root, [Frame(path=p, file=p.name) for p in paths], has_manifest=False)
+            raise InputError(f"{printable(str(root))}: no images found; add PNG/TIFF/JPEG/BMP/raw/FITS files or a "
+                             "manifest.csv")
+        return Dataset(root, _with_fits_headers([Frame(path=p, file=p.name) for p in paths]), has_manifest=False)
     frames = [_frame(row) for row in read_manifest(root, manifest, allow_outside)]
-    return Dataset(root, frames, has_manifest=True)
+    return Dataset(root, _with_fits_headers(frames), has_manifest=True)
+
+
+def _with_fits_headers(frames: list[Frame]) -> list[Frame]:
+    """FITS frames with their header's conditions read now (no pixels decoded), filling what the manifest (if any)
+    leaves empty: grouping by condition reads the fields directly, so they must be there before any grouping."""
+    for frame in frames:
+        if is_fits(frame.path):
+            frame.info()
+    return frames
 
 
 def _frame(row: ManifestRow) -> Frame:

@@ -24,6 +24,7 @@ class DatasetSummary:
     captured: list[float] | None
     epochs: list[dict[str, Any]] = field(default_factory=list)
     conditions: list[dict[str, Any]] = field(default_factory=list)
+    frame_types: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -43,7 +44,30 @@ def summarize_dataset(ds: Dataset) -> DatasetSummary:
     conditions = [{"exposure_s": k[0], "iso": k[1], "temperature_c": k[2], "subject": k[3], "n": len(v)}
                   for k, v in ds.conditions().items()]
     return DatasetSummary(str(ds.root), len(ds), list(shape), dtype, ds.has_manifest, ds.devices(),
-                          [min(known), max(known)] if known else None, epochs, conditions)
+                          [min(known), max(known)] if known else None, epochs, conditions, frame_types(ds))
+
+
+def frame_types(ds: Dataset) -> list[dict[str, Any]]:
+    """Calibration frames (FITS IMAGETYP or a manifest ``frame_type``) by type, exposure and set point: how many, the
+    measured temperatures, and the frames measured more than a degree off their set point."""
+    from forensics.io.fits import SETPOINT_TOLERANCE_C
+
+    groups: dict[tuple[Any, ...], list[Any]] = {}
+    for frame in ds:
+        kind = frame.get("frame_type")
+        if not kind:
+            continue
+        setpoint = frame.get("set_temperature_c")
+        groups.setdefault((kind, frame.exposure_s, None if setpoint in (None, "") else float(setpoint)), []).append(frame)
+    rows = []
+    for (kind, exposure, setpoint), frames in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][2] or 0.0,
+                                                                                     kv[0][1] or 0.0)):
+        temps = [f.temperature_c for f in frames if f.temperature_c is not None]
+        off = [f.file for f in frames if setpoint is not None and f.temperature_c is not None
+               and abs(f.temperature_c - setpoint) > SETPOINT_TOLERANCE_C]
+        rows.append({"frame_type": kind, "exposure_s": exposure, "set_temperature_c": setpoint, "n": len(frames),
+                     "temperature_c": [min(temps), max(temps)] if temps else None, "off_set_point": off})
+    return rows
 
 
 def summarize_file(path: str | Path) -> dict[str, Any]:
@@ -54,7 +78,8 @@ def summarize_file(path: str | Path) -> dict[str, Any]:
         info: ImageInfo = raw.info
         extra = {"cfa_pattern": raw.cfa_pattern, "black_level": list(raw.black_level), "white_level": raw.white_level}
     else:
-        info, extra = read_info(path), {}
+        info = read_info(path)
+        extra = {k: v for k, v in info.extra.items() if v not in (None, [], "")}  # a FITS header's conditions
     out = {k: v for k, v in asdict(info).items() if k != "extra"}
     out["dtype"] = str(np.dtype(info.dtype))
     out["path"] = str(path)

@@ -110,12 +110,16 @@ def _open(path: Path):
 
     if not path.is_file():
         raise InputError(f"{path}: no such file; check the path")
+    # our own handle: astropy leaves the file open when it fails part-way (a truncated file), the HDU list closes it
+    handle = open(path, "rb")  # noqa: SIM115
     try:
-        return fits.open(path, memmap=False, lazy_load_hdus=False)
+        return fits.open(handle, memmap=False, lazy_load_hdus=False)
     except Warning as exc:  # raised only where the caller made astropy's warnings errors (truncation)
+        handle.close()
         raise InputError(f"{path}: cannot read the image data ({_first_line(exc)}); the file may be truncated or "
                          "its header may not match its data") from None
     except (OSError, ValueError, TypeError, IndexError, KeyError) as exc:
+        handle.close()
         raise InputError(f"{path}: not a readable FITS file ({_first_line(exc)}); check the file is complete") from None
 
 

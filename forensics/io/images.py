@@ -2,7 +2,9 @@
 
 Ordinary images (PNG, TIFF, JPEG, BMP, …) are read through OpenImageIO in
 their native dtype; raw camera files (DNG, CR2, NEF, …) through rawpy as the
-CFA mosaic with its black and white levels.  Every file is checked before it is
+CFA mosaic with its black and white levels; FITS frames (``.fits``, ``.fit``,
+``.fts``, compressed ``.fits.fz``) through astropy (:mod:`forensics.io.fits`, which
+applies BZERO/BSCALE and checks the file itself).  Every other file is checked before it is
 decoded: a regular file (never a pipe, which would block), a header declaring no
 more pixels than :func:`~forensics._shared.limits.pixel_limit` and at least 2×2.
 Writing is atomic (temporary file, then rename), verified by the library's own
@@ -276,8 +278,24 @@ def _spec_info(path: Path, spec: Any) -> ImageInfo:
     )
 
 
+def fits_info(path: str | os.PathLike) -> ImageInfo:
+    """A FITS frame's :class:`ImageInfo`: size, dtype, DATE-OBS, EXPTIME, INSTRUME and serial, and in ``extra`` the
+    conditions only FITS carries (``temperature_c``, ``set_temperature_c``, ``frame_type``, ``gain_e_per_adu``,
+    ``binning``, ``device``, ``warnings``; :mod:`forensics.io.fits`)."""
+    from forensics.io.fits import read_fits_header
+
+    header = read_fits_header(path)
+    extra = {"temperature_c": header.temperature_c, "set_temperature_c": header.set_temperature_c,
+             "frame_type": header.frame_type, "gain_e_per_adu": header.gain_e_per_adu,
+             "binning": list(header.binning) if header.binning else None, "device": header.device,
+             "warnings": list(header.warnings)}
+    return ImageInfo(path=Path(path), width=header.shape[1], height=header.shape[0], channels=1, dtype=header.dtype,
+                     captured=header.captured, exposure_s=header.exposure_s, model=header.instrument,
+                     serial=header.serial, extra=extra)
+
+
 def read_info(path: str | os.PathLike) -> ImageInfo:
-    """Read a file's size, dtype and capture metadata (EXIF) without decoding its pixels.
+    """Read a file's size, dtype and capture metadata (EXIF; a FITS frame's header) without decoding its pixels.
 
     ``channels`` counts colour channels only (an alpha channel is not counted, as :func:`read_image` drops it).
 
@@ -287,7 +305,11 @@ def read_info(path: str | os.PathLike) -> ImageInfo:
         If the file is missing, not a regular file or not a readable image, or its header declares more
         pixels than :func:`~forensics._shared.limits.pixel_limit` or fewer than 2×2.
     """
+    from forensics.io.fits import is_fits
+
     path = Path(path)
+    if is_fits(path):  # FITS needs astropy: OpenImageIO ignores BZERO
+        return fits_info(path)
     if is_raw(path):
         return read_raw(path).info
     with _image_input(path) as inp:
@@ -307,7 +329,11 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         If the file is missing, corrupt or truncated, or its header declares too many pixels to decode
         (:func:`~forensics._shared.limits.pixel_limit`) or fewer than 2×2; the message names the file.
     """
+    from forensics.io.fits import is_fits, read_fits
+
     path = Path(path)
+    if is_fits(path):
+        return read_fits(path).data
     if is_raw(path):
         return read_raw(path).mosaic
     with _image_input(path) as inp:

@@ -35,7 +35,7 @@ ABSOLUTE_ZERO_C = -273.15
 HOTTEST_C = 150.0
 # Physical range of each numeric column: (lowest, highest, whether the lowest itself is allowed, what it is).
 _RANGES = {
-    "exposure_s": (0.0, math.inf, False, "an exposure time in seconds, above 0"),
+    "exposure_s": (0.0, math.inf, True, "an exposure time in seconds, 0 or more (0: a bias frame)"),
     "iso": (0.0, math.inf, False, "an ISO sensitivity, above 0"),
     "temperature_c": (ABSOLUTE_ZERO_C, HOTTEST_C, False,
                       f"a temperature in °C above absolute zero ({ABSOLUTE_ZERO_C}) and at most {HOTTEST_C:g}"),

@@ -31,7 +31,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "pce", "prepare_query", "score_matrix", "score_pair", "score_query",
         ],
         "region": ["Region", "parse_region"],
-        "residual": ["median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft", "zero_mean_cfa"],
+        "residual": ["cfa_residual_and_grey", "median_residual", "residual_and_grey", "wavelet_residual", "wiener_dft",
+                     "zero_mean_cfa"],
         "samedevice": [
             "EerVerdict", "SameDeviceResult", "SetPlan", "SetSummary", "eer_verdict",
             "expected_eer_ci_width", "plan_set", "same_device",

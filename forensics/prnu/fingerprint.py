@@ -76,6 +76,7 @@ from forensics.prnu.region import Region, parse_region
 from forensics.prnu.residual import (
     LEVELS,
     WAVELET,
+    cfa_residual_and_grey,
     residual_and_grey,
     wiener_dft,
     zero_mean_cfa,
@@ -99,6 +100,8 @@ __all__ = [
     "postprocess",
     "region_content_problem",
     "region_residual_and_intensity",
+    "raw_options",
+    "query_options",
     "FORMAT",
 ]
 
@@ -215,6 +218,7 @@ def region_residual_and_intensity(
     rolloff: bool = True,
     postprocess: bool = False,
     workers: int | None = None,
+    cfa: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residual ``W`` and intensity ``I`` of one frame over a region (each piece processed on its own).
 
@@ -232,6 +236,9 @@ def region_residual_and_intensity(
         fingerprint accumulation: no).
     workers : int, optional
         Threads.
+    cfa : bool
+        The frame is a raw CFA mosaic: each colour channel is denoised on its own
+        (:func:`~forensics.prnu.residual.cfa_residual_and_grey`).
 
     Returns
     -------
@@ -250,7 +257,8 @@ def region_residual_and_intensity(
     parts = []
     for src in pieces:
         piece = image[src]
-        res, grey = residual_and_grey(piece, sigma, white_level=white_level, workers=workers)
+        split = cfa_residual_and_grey if cfa else residual_and_grey
+        res, grey = split(piece, sigma, white_level=white_level, workers=workers)
         if postprocess:
             res = np.ascontiguousarray(res)
             zero_mean_cfa(res, inplace=True)
@@ -530,6 +538,25 @@ class FingerprintSums:
         self.skipped = []
 
 
+def raw_options(path: str | os.PathLike) -> dict[str, Any]:
+    """Builder and query options for frames like the raw file at ``path``: residuals per CFA channel, its black
+    level per 2×2 position and its white level (LibRaw's); empty for any other file."""
+    from forensics.io.images import is_raw, read_raw
+
+    if not is_raw(path):
+        return {}
+    raw = read_raw(path)
+    return {"cfa": True, "black_level": list(raw.black_level), "white_level": float(raw.white_level)}
+
+
+def query_options(fingerprint: "Fingerprint") -> dict[str, Any]:
+    """The query options a fingerprint was built with that queries must share (raw mosaics: channels, levels)."""
+    params = fingerprint.parameters
+    if not params.get("residual", {}).get("cfa_channels"):
+        return {}
+    return {"cfa": True, "black_level": params.get("black_level", 0.0), "white_level": params.get("white_level")}
+
+
 class FingerprintBuilder:
     """Accumulate ``Σ W·I`` and ``Σ I²`` image by image; memory does not grow with the count.
 
@@ -556,6 +583,9 @@ class FingerprintBuilder:
         Apply the reference's intensity roll-off near full scale.
     workers : int, optional
         Threads for the residuals.
+    cfa : bool
+        The frames are raw CFA mosaics: residuals channel by channel (:func:`raw_options` gives this, the black
+        levels and the white level of a raw file).
 
     Examples
     --------
@@ -576,8 +606,10 @@ class FingerprintBuilder:
         saturation_dilate: int = 1,
         rolloff: bool = True,
         workers: int | None = None,
+        cfa: bool = False,
     ) -> None:
         self.region = parse_region(region)
+        self.cfa = bool(cfa)
         self.sigma = float(sigma)
         self.white_level = white_level
         self.black_level = black_level
@@ -716,7 +748,7 @@ class FingerprintBuilder:
             image, self.region, self.sigma,
             white_level=self.white_level, black_level=self.black_level,
             saturation_level=self.saturation_level, saturation_dilate=self.saturation_dilate,
-            rolloff=self.rolloff, postprocess=False, workers=self.workers,
+            rolloff=self.rolloff, postprocess=False, workers=self.workers, cfa=self.cfa,
         )
 
     def _postprocess(self, raw: np.ndarray) -> np.ndarray:
@@ -728,7 +760,8 @@ class FingerprintBuilder:
         """How the estimate was made, for the provenance."""
         return {"estimator": "K = sum(W*I) / sum(I^2), then zero-mean per CFA sub-lattice and DFT Wiener",
                 "residual": {"wavelet": WAVELET, "levels": LEVELS, "mode": "periodization",
-                             "grey_weights": list(GREY_WEIGHTS), "sigma_8bit": self.sigma}}
+                             "grey_weights": list(GREY_WEIGHTS), "sigma_8bit": self.sigma,
+                             "cfa_channels": self.cfa}}
 
     def raw_estimate(self) -> np.ndarray:
         """``Σ W·I / Σ I²`` before post-processing (0 where no image contributed), float32."""

@@ -317,6 +317,7 @@ def prepare_query(
     saturation_dilate: int = 1,
     rolloff: bool = True,
     workers: int | None = None,
+    cfa: bool = False,
 ) -> Query:
     """Residual (σ = 2, zero-mean, DFT Wiener) and intensity of a query image over a region.
 
@@ -332,7 +333,7 @@ def prepare_query(
         ``np.rot90`` turns applied to the image first.
     source : str, optional
         Name kept in the result.
-    white_level, black_level, saturation_level, saturation_dilate, rolloff, workers
+    white_level, black_level, saturation_level, saturation_dilate, rolloff, workers, cfa
         As :class:`forensics.prnu.fingerprint.FingerprintBuilder`.
     """
     region = parse_region(region)
@@ -342,7 +343,7 @@ def prepare_query(
     res, inten = region_residual_and_intensity(
         image, region, sigma,
         white_level=white_level, black_level=black_level, saturation_level=saturation_level,
-        saturation_dilate=saturation_dilate, rolloff=rolloff, postprocess=True, workers=workers,
+        saturation_dilate=saturation_dilate, rolloff=rolloff, postprocess=True, workers=workers, cfa=cfa,
     )
     return Query(residual=res, intensity=inten, region=region.spec, rotation=rotation % 4, source=source)
 
@@ -722,8 +723,11 @@ def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, th
     if threshold is None and metric == "pce":
         threshold = PCE_THRESHOLD
     check_fingerprint(fingerprint, name or "fingerprint")
+    from forensics.prnu.fingerprint import query_options
+
     scores, details = score_matrix([fingerprint], dataset.frames, metric, sigma=sigma, shift_range=shift_range,
-                                   progress=progress, total=len(dataset), details=True, executor=executor)
+                                   progress=progress, total=len(dataset), details=True, executor=executor,
+                                   **query_options(fingerprint))
     rows = []
     for frame, value, d in zip(dataset.frames, scores[0], details[0]):
         decision = None if threshold is None or d.excluded is not None else bool(value >= threshold)

@@ -40,13 +40,14 @@ def histogram_figure(result: DetectionResult):
     """The accumulated histogram: pixels above each threshold, log scale, with τ and the normal expectation."""
     fig, ax = new_figure(6.4, 4.0)
     x = result.hist_thresholds
+    unit = result.threshold_dict().get("units", "DN")  # ADU/s for a dark series' rates
     ax.step(x, np.maximum(result.hist_counts, 0.5), where="post", label="pixels with d̂ above x")
     ax.plot(x, np.maximum(result.hist_expected, 1e-3), "--", color="C2", label="normal model (robust fit)")
     for fit in result.fits[:1]:
-        ax.axvline(fit.tau, color="C3", lw=1.5, label=f"τ = {fit.tau:.4g} DN")
+        ax.axvline(fit.tau, color="C3", lw=1.5, label=f"τ = {fit.tau:.4g} {unit}")
     ax.set_yscale("log")
     ax.set_ylim(0.5, max(2.0, float(result.hist_counts.max()) * 2))
-    ax.set_xlabel("threshold x on d̂ (DN)")
+    ax.set_xlabel(f"threshold x on d̂ ({unit})")
     ax.set_ylabel("number of pixels with d̂ > x")
     ax.legend(fontsize=8)
     return fig

@@ -14,7 +14,8 @@ def demo_page(sections: Sequence[tuple[str, Any]], seed: Any) -> Report:
     whose figures are renamed ``<name>_…``); ``seed`` is what the run's provenance records."""
     page = Report("forensics demo: what a sensor leaves in its images")
     page.text("Everything on this page was computed from built-in, simulated data whose truth is known, "
-              f"with seed {seed}. Re-run with 'forensics demo --seed N' for another draw.")
+              f"with seed {seed}, except the cooled CCD's section, which uses the real frames of one camera where "
+              "they are on the machine (it says so). Re-run with 'forensics demo --seed N' for another draw.")
     for name, section in sections:
         page.heading(section.title)
         page.extend(section.report, prefix=f"{name}_")

@@ -176,7 +176,7 @@ def test_control_characters_in_refused_values_are_escaped_in_the_message(tmp_pat
     ("temperature_c", "-273.15", r"out of range"),
     ("temperature_c", "451", r"out of range: .* at most 150"),
     ("temperature_c", "nan", r"out of range"),
-    ("exposure_s", "0", r"'0' is out of range: give an exposure time in seconds, above 0"),
+    ("exposure_s", "-1", r"'-1' is out of range: give an exposure time in seconds, 0 or more"),
     ("exposure_s", "inf", r"out of range"),
     ("iso", "-100", r"'-100' is out of range"),
     ("black_level", "nan", r"field 'black_level' = 'nan' is out of range: give a black level in DN"),
@@ -193,7 +193,7 @@ def test_values_out_of_their_physical_range_are_refused_where_parsed(tmp_path, c
     ("captured", "20090701", 2009.4959), ("captured", "20090701T120000", 2009.4973),
     ("captured", "1975.0", 1975.0), ("captured", "2096-01-01", 2096.0),
     ("temperature_c", "-120", -120.0), ("temperature_c", "150", 150.0),
-    ("black_level", "0", "0"), ("exposure_s", "3600", 3600.0),
+    ("black_level", "0", "0"), ("exposure_s", "3600", 3600.0), ("exposure_s", "0", 0.0),  # 0: a bias frame
 ])
 def test_values_in_range_are_read(tmp_path, column, value, expected):
     """D21: the ISO 8601 basic form 20090701 was refused as a decimal year; a cooled CCD at −120 °C is fine."""

@@ -1,0 +1,115 @@
+"""A folder of FITS frames as a dataset: the headers are its manifest (conditions, frame type as subject, device),
+a manifest still overrides, compressed and multi-extension files are listed, a bad frame is named."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+fits = pytest.importorskip("astropy.io.fits")
+
+from forensics._shared.errors import InputError  # noqa: E402
+from forensics.io.dataset import DARK_SUBJECT, open_dataset  # noqa: E402
+from forensics.io.describe import summarize_dataset  # noqa: E402
+
+
+def _hdu(kind: str, exposure: float, measured: float, setpoint: float, *, serial: str | None = "12345",
+         value: int = 1000) -> fits.PrimaryHDU:
+    hdu = fits.PrimaryHDU(np.full((8, 10), value, np.uint16))
+    hdu.header.update({"IMAGETYP": kind, "EXPTIME": exposure, "CCD-TEMP": measured, "SET-TEMP": setpoint,
+                       "INSTRUME": "SBIG STL-1001E", "DATE-OBS": "2017-09-08T21:18:13.698", "EGAIN": 2.06})
+    if serial:
+        hdu.header["SERIALNO"] = serial
+    return hdu
+
+
+@pytest.fixture
+def folder(tmp_path):
+    root = tmp_path / "ccd"
+    root.mkdir()
+    _hdu("Bias Frame", 0.0, -10.1, -10.0).writeto(root / "a-bias.fits")
+    _hdu("Dark Frame", 60.0, -4.9, -5.0).writeto(root / "b-dark.fit")
+    _hdu("Dark Frame", 60.0, -2.5, -5.0).writeto(root / "c-dark-unsettled.fits")  # 2.5 °C off its set point
+    _hdu("Flat Field", 23.0, -5.0, -5.0).writeto(root / "d-flat.fts")
+    fits.HDUList([fits.PrimaryHDU(), fits.CompImageHDU(np.full((8, 10), 1200, np.uint16),
+                                                        header=_hdu("Light Frame", 5.0, -5.0, -5.0).header)]
+                 ).writeto(root / "e-light.fits.fz")
+    return root
+
+
+def test_headers_are_the_manifest(folder):
+    ds = open_dataset(folder)
+    assert not ds.has_manifest and [f.file for f in ds] == ["a-bias.fits", "b-dark.fit", "c-dark-unsettled.fits",
+                                                             "d-flat.fts", "e-light.fits.fz"]
+    by_name = {f.file: f for f in ds}
+    bias, dark, flat, light = (by_name[n] for n in ("a-bias.fits", "b-dark.fit", "d-flat.fts", "e-light.fits.fz"))
+    # the frame type as the subject convention: frames taken without light are 'dark' (a bias is exposure 0)
+    assert (bias.subject, dark.subject, flat.subject, light.subject) == (DARK_SUBJECT, DARK_SUBJECT, "flat", "light")
+    assert [f.get("frame_type") for f in (bias, dark, flat, light)] == ["bias", "dark", "flat", "light"]
+    assert bias.exposure_s == 0.0 and dark.exposure_s == 60.0
+    # the measured temperature is the condition; the set point is kept beside it
+    assert dark.temperature_c == pytest.approx(-4.9) and float(dark.get("set_temperature_c")) == -5.0
+    assert float(dark.get("gain_e_per_adu")) == pytest.approx(2.06)
+    assert ds.devices() == ["SBIG STL-1001E #12345"]
+    assert bias.captured == pytest.approx(2017 + (250 + (21 + 18 / 60) / 24) / 365, abs=1e-4)
+    assert light.load().dtype == np.uint16 and int(light.load()[0, 0]) == 1200  # the compressed extension
+
+
+def test_grouping_by_condition_sees_the_header_values(folder):
+    conditions = open_dataset(folder).conditions()
+    assert (0.0, None, pytest.approx(-10.1), DARK_SUBJECT) in [k for k in conditions]
+    assert sum(len(v) for v in conditions.values()) == 5
+
+
+def test_info_lists_conditions_and_frames_off_their_set_point(folder):
+    rows = summarize_dataset(open_dataset(folder)).frame_types
+    darks = [r for r in rows if r["frame_type"] == "dark"]
+    assert len(darks) == 1 and darks[0]["n"] == 2 and darks[0]["set_temperature_c"] == -5.0
+    assert darks[0]["off_set_point"] == ["c-dark-unsettled.fits"]  # 2.5 °C off: named; 0.1 °C off: not
+    assert darks[0]["temperature_c"] == [pytest.approx(-4.9), pytest.approx(-2.5)]
+    assert {r["frame_type"] for r in rows} == {"bias", "dark", "flat", "light"}
+
+
+def test_a_manifest_overrides_the_headers(folder):
+    (folder / "manifest.csv").write_text(
+        "file,device,subject,temperature_c,frame_type\n"
+        "a-bias.fits,camera-7,,,\n"
+        "b-dark.fit,,light,-20,\n"
+        "d-flat.fts,,,,light\n")
+    ds = open_dataset(folder)
+    frames = {f.file: f for f in ds}
+    assert frames["a-bias.fits"].device == "camera-7" and frames["a-bias.fits"].subject == DARK_SUBJECT
+    assert frames["b-dark.fit"].subject == "light" and frames["b-dark.fit"].temperature_c == -20.0
+    assert frames["b-dark.fit"].device == "SBIG STL-1001E #12345"  # not given: from the header
+    assert frames["d-flat.fts"].get("frame_type") == "light"
+    assert (0.0, None, pytest.approx(-10.1), DARK_SUBJECT) in list(ds.conditions())  # filled before grouping
+
+
+def test_device_without_a_serial_is_the_instrument(tmp_path):
+    _hdu("Dark Frame", 10.0, -10.0, -10.0, serial=None).writeto(tmp_path / "d.fits")
+    assert open_dataset(tmp_path).devices() == ["SBIG STL-1001E"]
+
+
+def test_a_bad_frame_in_a_folder_is_named_in_one_line(folder):
+    (folder / "f-broken.fits").write_bytes((folder / "b-dark.fit").read_bytes()[:2880])  # header, no data
+    with pytest.raises(InputError) as err:
+        [f.load() for f in open_dataset(folder)]
+    assert "f-broken.fits" in str(err.value) and "\n" not in str(err.value)
+    (folder / "f-broken.fits").write_bytes(b"SIMPLE  = nonsense" + b" " * 100)
+    with pytest.raises(InputError) as err:
+        open_dataset(folder)
+    assert "f-broken.fits" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_header_that_contradicts_its_data_is_refused_in_one_line(tmp_path, cli):
+    path = tmp_path / "dark.fits"
+    _hdu("Dark Frame", 60.0, -5.0, -5.0).writeto(path)
+    raw = path.read_bytes()
+    card = b"NAXIS2  =                    8"
+    assert raw.count(card) == 1
+    lying = tmp_path / "lying.fits"  # the header claims 800 rows (16 kB, past the file's 2880-byte data block)
+    lying.write_bytes(raw.replace(card, b"NAXIS2  =                  800"))
+    code, out, err = cli("info", str(tmp_path / "lying.fits"))
+    assert code == 0 and "800" in out  # the header alone is read: it describes what it claims
+    (tmp_path / "dark.fits").unlink()
+    code, _, err = cli("defects", "detect", str(tmp_path), "--workers", "1", "--quiet")
+    assert code == 3 and "lying.fits" in err and len(err.strip().splitlines()) == 1
