@@ -141,12 +141,16 @@ class Frame:
         """A FITS header's conditions where the manifest gives none: the measured temperature, the frame type as the
         ``subject`` (bias and dark frames are ``dark``: taken without light) and as ``frame_type``, the set point
         and the gain as further columns."""
+        columns = ["frame_type", "set_temperature_c", "gain_e_per_adu"]
         if self.temperature_c is None and extra.get("temperature_c") is not None:
             self.temperature_c = float(extra["temperature_c"])
+        elif self.temperature_c is not None:
+            # the manifest's temperature overrides the header's, and the header's set point belongs to the header's
+            columns.remove("set_temperature_c")
         kind = extra.get("frame_type")
         if self.subject is None and kind:
             self.subject = FRAME_SUBJECTS.get(kind, kind)
-        for column in ("frame_type", "set_temperature_c", "gain_e_per_adu"):
+        for column in columns:
             if not self.extra.get(column) and extra.get(column) is not None:
                 self.extra[column] = str(extra[column])
 
@@ -185,6 +189,26 @@ class Frame:
         if name not in self.extra and not self._exif_done:
             self.info()  # a FITS header's further columns (frame_type, set_temperature_c, gain_e_per_adu)
         return self.extra.get(name)
+
+
+def nominal_temperature(frame: Frame) -> float | None:
+    """The temperature a frame was taken *at* as a condition: its set point where it has one, else the measured one.
+
+    Examples
+    --------
+    >>> from pathlib import Path
+    >>> nominal_temperature(Frame(Path("d.fits"), "d.fits", temperature_c=-9.79, extra={"set_temperature_c": "-10"}))
+    -10.0
+    >>> nominal_temperature(Frame(Path("d.png"), "d.png", temperature_c=25.0, extra={"set_temperature_c": ""}))
+    25.0
+    """
+    setpoint = frame.get("set_temperature_c")
+    if setpoint not in (None, ""):
+        try:
+            return float(setpoint)
+        except (TypeError, ValueError):
+            pass  # a set point that is not a number is only a label; the measured value stands
+    return frame.temperature_c
 
 
 @dataclass
@@ -246,8 +270,14 @@ class Dataset:
         return {k: replace(self, frames=v) for k, v in groups.items()}
 
     def conditions(self) -> dict[tuple[Any, ...], "Dataset"]:
-        """Group by acquisition condition: (exposure_s, iso, temperature_c, subject)."""
-        return self.group_by(lambda f: (f.exposure_s, f.iso, f.temperature_c, f.subject))
+        """Group by acquisition condition: (exposure_s, iso, temperature, subject).
+
+        The temperature is the frame's set point (``set_temperature_c``, from FITS's SET-TEMP or the manifest)
+        where it has one, else its measured ``temperature_c``: a cooled sensor's thermistor reads in steps
+        around its set point (−10.20 and −9.79 °C for one −10 °C run), and those readings are one condition,
+        not several.
+        """
+        return self.group_by(lambda f: (f.exposure_s, f.iso, nominal_temperature(f), f.subject))
 
     def epochs(self, gap_years: float = 0.25) -> list["Dataset"]:
         """Split by capture time into epochs: a new epoch starts after a gap longer than ``gap_years``."""

@@ -56,8 +56,22 @@ def test_headers_are_the_manifest(folder):
 
 def test_grouping_by_condition_sees_the_header_values(folder):
     conditions = open_dataset(folder).conditions()
-    assert (0.0, None, pytest.approx(-10.1), DARK_SUBJECT) in [k for k in conditions]
+    # the condition is the set point; the thermistor's -10.1 °C is a reading around it
+    assert (0.0, None, -10.0, DARK_SUBJECT) in conditions
     assert sum(len(v) for v in conditions.values()) == 5
+
+
+def test_readings_around_one_set_point_are_one_condition(tmp_path):
+    """A cooled CCD's thermistor reads in steps around its set point (the 2017 STL-1001E: -10.20 and -9.79 °C);
+    counting each reading as a condition made `info` report 19 conditions for a series taken at 2 set points."""
+    root = tmp_path / "ccd"
+    root.mkdir()
+    for i, measured in enumerate((-10.20, -9.79, -10.20)):
+        _hdu("Dark Frame", 60.0, measured, -10.0).writeto(root / f"dark{i}.fits")
+    _hdu("Dark Frame", 60.0, -5.2, -5.0).writeto(root / "dark-warm.fits")
+    conditions = open_dataset(root).conditions()
+    assert {k: len(v) for k, v in conditions.items()} == {(60.0, None, -10.0, DARK_SUBJECT): 3,
+                                                          (60.0, None, -5.0, DARK_SUBJECT): 1}
 
 
 def test_info_lists_conditions_and_frames_off_their_set_point(folder):
@@ -81,7 +95,9 @@ def test_a_manifest_overrides_the_headers(folder):
     assert frames["b-dark.fit"].subject == "light" and frames["b-dark.fit"].temperature_c == -20.0
     assert frames["b-dark.fit"].device == "SBIG STL-1001E #12345"  # not given: from the header
     assert frames["d-flat.fts"].get("frame_type") == "light"
-    assert (0.0, None, pytest.approx(-10.1), DARK_SUBJECT) in list(ds.conditions())  # filled before grouping
+    # filled before grouping: the bias's header set point; the dark's manifest temperature (its header set point
+    # of -5 °C belongs to the header's temperature, which the manifest replaced)
+    assert {(0.0, None, -10.0, DARK_SUBJECT), (60.0, None, -20.0, "light")} <= set(ds.conditions())
 
 
 def test_device_without_a_serial_is_the_instrument(tmp_path):
