@@ -181,7 +181,9 @@ def write_json(path: str | os.PathLike, obj: Any, force: bool = False) -> Path:
 def atomic_directory(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; on success it replaces ``path``, on failure it is removed.
 
-    The folder gets the mode ``mkdir()`` would give it (umask applied).
+    The folder gets the mode ``mkdir()`` would give it (umask applied).  A full disk or quota while its files
+    are written is raised as :class:`OSError` naming ``path`` (the temporary file inside means nothing to the
+    user), after the temporary folder is removed.
     """
     path = refuse_existing(path, force)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -189,6 +191,12 @@ def atomic_directory(path: str | os.PathLike, force: bool = False) -> Iterator[P
     try:
         yield tmp
         move_directory_into_place(tmp, path)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        named = _name_the_file(exc, path)
+        if named is exc:
+            raise
+        raise named from exc
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
