@@ -153,11 +153,11 @@ def check(run: Run, code: int, *needles: str, json_out: bool = False, quiet_err:
     problems = []
     if run.code != code:
         problems.append(f"exit {run.code}, not {code}")
-    err_lines = run.err.strip().splitlines()
+    err_lines = error_lines(run.err)
     if "Traceback" in run.err:
         problems.append("traceback on stderr")
     if code != 0:
-        if len(err_lines) != 1 or not err_lines[0].startswith("forensics: "):
+        if len(err_lines) != 1 or not err_lines[0].startswith("forensics"):
             problems.append(f"{len(err_lines)} lines on stderr")
     elif quiet_err and err_lines:
         problems.append(f"{len(err_lines)} lines on stderr")
@@ -174,6 +174,15 @@ def check(run: Run, code: int, *needles: str, json_out: bool = False, quiet_err:
     if run.orphans:
         problems.append(f"{len(run.orphans)} process(es) survived the command")
     return problems
+
+
+def error_lines(err: str) -> list[str]:
+    """stderr without warnings (``warning: …``, one line each) and without argparse's usage synopsis, which it
+    prints before its one error line (``usage: …`` and its indented continuation lines)."""
+    lines = [line for line in err.strip().splitlines() if not line.startswith("warning: ")]
+    if lines and lines[0].startswith("usage: "):
+        lines = [line for line in lines[1:] if not line.startswith(" ")]
+    return lines
 
 
 def observed(run: Run) -> str:
@@ -249,6 +258,7 @@ for i in range(3):                                    # a small textured set for
 def rgba(path, colour, alpha):
     spec = oiio.ImageSpec(colour.shape[1], colour.shape[0], 4, "uint8")
     spec.alpha_channel = 3
+    spec.attribute("oiio:UnassociatedAlpha", 1)  # stored as given (PNG's own convention), not divided by alpha
     out = oiio.ImageOutput.create(str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     assert out.open(str(path), spec) and out.write_image(np.dstack([colour, np.full(colour.shape[:2], alpha, np.uint8)]))
@@ -315,13 +325,15 @@ def python_of(forensics: str) -> str:
 
 
 def png_bomb(path: Path, side: int = 50_000) -> None:
-    """A small PNG whose header declares side² pixels (a decompression bomb); only its first rows are stored —
-    the promise is a refusal from the header, before anything is decoded."""
+    """A 300 kB PNG whose header declares side² pixels (a decompression bomb); only its first rows are stored —
+    the promise is a refusal from the header, before anything is decoded.  The padding chunk takes it past
+    OpenImageIO's own size-ratio check (10,000 : 1), as a real zlib bomb (about 1,000 : 1) is."""
     def chunk(kind: bytes, data: bytes) -> bytes:
         return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
     ihdr = side.to_bytes(4, "big") * 2 + bytes([8, 0, 0, 0, 0])
     rows = zlib.compress(bytes(side + 1) * 200, 9)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", rows) + chunk(b"IEND", b""))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"prVt", bytes(300_000))
+                     + chunk(b"IDAT", rows) + chunk(b"IEND", b""))
 
 
 class Fixtures:
@@ -826,26 +838,28 @@ simple("D12 simulate irises --size 100000x100000", "D12", 2,
 
 
 # --- D14: a full disk (a file-size limit: the kernel's EFBIG on the path ENOSPC takes)
-def _d14(argv: Callable[[Ctx], list], out: Callable[[Ctx], Path], limit: int):
+def _d14(argv: Callable[[Ctx], list], out: Callable[[Ctx], Path], limit: int, named: Callable[[Ctx], str]):
+    """A write refused by the device: exit 3 naming the file, no output, no temporary; the ``.OUT.partial`` of a
+    resumable command (its finished work, for a rerun once there is room) is allowed."""
     def body(c: Ctx):
         r = c.run(*argv(c), fsize=limit)
-        problems = check(r, 3, "file too large")
+        problems = check(r, 3, f"{named(c)}: file too large")
         if os.path.lexists(out(c)):
             problems.append("the output exists after a failed write")
-        problems += [f"stray: {s}" for s in strays(c.work)]
+        problems += [f"stray: {s}" for s in strays(c.work, allow_partial=True)]
         return observed(r), problems
     return body
 
 
 case("D14 ulimit -f 20: fingerprint build -o", "D14", "exit 3 naming the file, no partial output")(_d14(
     lambda c: ["fingerprint", "build", c.fx.cam0, "-o", c.work / "fp.npz", W, 1, "--quiet"],
-    lambda c: c.work / "fp.npz", 20 * 1024))
+    lambda c: c.work / "fp.npz", 20 * 1024, lambda c: "fp.npz"))
 case("D14 ulimit -f 20: simulate scenes", "D14", "exit 3 naming the file, no partial output")(_d14(
     lambda c: ["simulate", "scenes", c.work / "s", "--count", "3", "--size", "320x240", "--rgb", "--quiet"],
-    lambda c: c.work / "s", 20 * 1024))
-case("D14 ulimit -f 20: defects detect --report", "D14", "exit 3 naming the file, no partial report")(_d14(
+    lambda c: c.work / "s", 20 * 1024, lambda c: c.work / "s" / "scene_0000.png"))
+case("D14 ulimit -f 20: defects detect --report", "D14", "exit 3 naming the report, no partial report")(_d14(
     lambda c: ["defects", "detect", c.fx.bigscenes, "--mask", "all", W, 1, "--quiet", "--report", c.work / "r"],
-    lambda c: c.work / "r", 20 * 1024))
+    lambda c: c.work / "r", 20 * 1024, lambda c: c.work / "r"))
 
 
 # --- D16
@@ -863,8 +877,8 @@ def _fifo_manifest(c: Ctx) -> Path:
     return s
 
 
-def _fifo_image(c: Ctx) -> Path:
-    s = copy_set(c.fx.tiny, c.work / "s")
+def _fifo_image(c: Ctx, manifest: str | None = None) -> Path:
+    s = copy_set(c.fx.tiny, c.work / "s", manifest)
     os.mkfifo(s / "f9.png")
     return s
 
@@ -876,7 +890,17 @@ simple("D19 manifest.csv is a FIFO (fingerprint build)", "D19", 3,
        timeout=30)
 simple("D19 a FIFO named like an image given to info", "D19", 3, lambda c: ["info", c.fx.root / "pipe.png"],
        "is not a regular file", timeout=30)
-simple("D19 a FIFO named like an image in a set", "D19", 3, lambda c: ["info", _fifo_image(c)], "f9.png", timeout=30)
+simple("D19 a manifest row naming a FIFO", "D19", 3,
+       lambda c: ["info", _fifo_image(c, "file\nf0.png\nf9.png\n")], "f9.png", timeout=30)
+
+
+@case("D19 a FIFO named like an image in a set without manifest", "D19", "exit 0 at once, the FIFO not an image")
+def _fifo_in_set(c: Ctx):
+    r = c.run("info", _fifo_image(c), "--json", timeout=30)
+    problems = check(r, 0, json_out=True)
+    if not problems and strict_json(r.out).get("n_images") != 3:
+        problems.append(f"n_images {strict_json(r.out).get('n_images')}, not 3")
+    return observed(r), problems
 
 # --- D20: values that should be refused
 D20_MANIFEST = [
@@ -1144,7 +1168,9 @@ def _db_add_interrupted(signum: int, delay: float):
             os.kill(proc.pid, signum)
         r = c.run.finish(proc, log, started)
         problems = []
-        if r.code not in (0, 130, -signal.SIGKILL):
+        # -SIGINT with nothing on stderr: the signal came after the command had finished, while Python exited
+        finished = r.code == -signal.SIGINT and not r.err.strip()
+        if r.code not in (0, 130, -signal.SIGKILL) and not finished:
             problems.append(f"interrupted add exit {r.code}")
         if r.code == 130:
             problems += check(r, 130)

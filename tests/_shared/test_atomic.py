@@ -145,6 +145,9 @@ def test_a_full_device_under_a_report_folder_names_the_folder(tmp_path, cli):
         raise OSError(errno.EFBIG, "File too large")  # what write() raises past `ulimit -f`, without a name
     assert caught.value.errno == errno.EFBIG and caught.value.filename == str(tmp_path / "report")
     assert list(tmp_path.iterdir()) == []
+    with pytest.raises(OSError) as inside, atomic_directory(tmp_path / "scenes") as folder:
+        raise OSError(errno.EFBIG, "File too large", str(folder / "scene_0000.png"))
+    assert inside.value.errno == errno.EFBIG and inside.value.filename == str(tmp_path / "scenes" / "scene_0000.png")
     with pytest.raises(FileNotFoundError) as other, atomic_directory(tmp_path / "r2"):
         raise FileNotFoundError(errno.ENOENT, "an input", "/some/input")
     assert other.value.filename == "/some/input" and list(tmp_path.iterdir()) == []
