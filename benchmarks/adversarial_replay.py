@@ -302,7 +302,7 @@ path = sys.argv[1]
 with np.load(path) as npz:
     arrays = {k: npz[k] for k in npz.files}
 meta = json.loads(str(arrays["meta"][()]))
-meta["frame_shape"] = [meta["frame_shape"][0] * 2, meta["frame_shape"][1] * 2]
+meta.update(json.loads(sys.argv[2]))  # K and the rest unchanged: the file stays self-consistent
 arrays["meta"] = np.array(json.dumps(meta))
 with open(path, "wb") as handle:
     np.savez(handle, **arrays)
@@ -354,6 +354,8 @@ class Fixtures:
         for k in range(2):
             sh(f, "fingerprint", "build", root / f"cam{k}", "-o", root / "fp" / f"cam{k}.npz", "--workers", "1",
                "--quiet")
+        sh(f, "fingerprint", "build", root / "cam0", "-o", root / "fp" / "cam0c.npz", "--region", "center:64",
+           "--workers", "1", "--quiet")
         sh(python, "-c", DAMAGE, root / "fp")
         # A growth model from a simulated device seen at three ages (what `date --model` reads).
         sh(f, "simulate", "age", root / "scenes", root / "aged", "--sensor", "G", "--years", "0,4,8", "--seed", "1",
@@ -724,13 +726,23 @@ simple("D09 unterminated quote (info)", "D09", 3,
 
 
 # --- D10: checksum over metadata
-@case("D10 edited frame_shape of a stored fingerprint, identify", "D10", "exit 3 naming the entry")
-def _d10(c: Ctx):
-    db = _db_with_cam0(c)
-    stored = next((db / "fingerprints").glob("*.npz"))
-    subprocess.run([c.python, "-c", EDIT_META, stored], check=True, capture_output=True)
-    r = c.run("identify", c.fx.cam1, "--db", db, W, 1, "--quiet")
-    return observed(r), check(r, 3, "cam0")
+def _d10(fp: str, change: str):
+    def body(c: Ctx):
+        db = c.work / "db"
+        add = c.run("fingerprint", "db", "add", db, c.fx.fp / fp, "--device", "cam0")
+        stored = next((db / "fingerprints").glob("*.npz"), None)
+        if add.code != 0 or stored is None:
+            return observed(add), ["setup: db add failed"]
+        subprocess.run([c.python, "-c", EDIT_META, stored, change], check=True, capture_output=True)
+        r = c.run("identify", c.fx.cam1, "--db", db, W, 1, "--quiet")
+        return observed(r), check(r, 3, "'cam0' does not match the database index")
+    return body
+
+
+case("D10 edited n_images of a stored fingerprint, identify", "D10", "exit 3 naming the entry")(
+    _d10("cam0.npz", '{"n_images": 99}'))
+case("D10 edited frame_shape (centre crop of a wider frame), identify", "D10", "exit 3 naming the entry")(
+    _d10("cam0c.npz", '{"frame_shape": [96, 192]}'))
 
 
 # --- D11: about twenty inputs that ended in a traceback
