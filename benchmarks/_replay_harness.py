@@ -12,6 +12,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 import zlib
 from collections.abc import Callable
@@ -68,6 +69,7 @@ class Runner:
         self.forensics, self.cwd, self.workers, self.logs = forensics, cwd, workers, logs
         self.env = {k: v for k, v in os.environ.items() if k not in ("FORENSICS_DEBUG", "PYTHONPATH")}
         self.env["NO_COLOR"] = "1"
+        self.last_err: dict[int, str] = {}  # per thread: stderr of its last run, shown for a failing case
         self._numbers = itertools.count(1)  # next() is atomic: cases run on threads
 
     def start(self, *argv, env: dict | None = None, umask: int | None = None, fsize: int | None = None,
@@ -101,6 +103,7 @@ class Runner:
         seconds = time.monotonic() - started
         orphans = wait_orphans(proc.pid)
         read = lambda name: (log / name).read_bytes().decode("utf-8", "replace")  # noqa: E731
+        self.last_err[threading.get_ident()] = read("err")[-1500:]
         return Run(proc.argv, code, read("out"), read("err"), seconds, orphans)  # type: ignore[attr-defined]
 
     def __call__(self, *argv, timeout: float = 120, **options) -> Run:

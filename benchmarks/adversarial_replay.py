@@ -55,6 +55,7 @@ class Outcome:
     ok: bool
     problems: list[str]
     seconds: float
+    stderr: str = ""  # of the case's last command, when the case fails
 
 
 def run_case(item: Case, ctx: Ctx, before: dict[str, str]) -> Outcome:
@@ -67,8 +68,11 @@ def run_case(item: Case, ctx: Ctx, before: dict[str, str]) -> Outcome:
     if after != before:
         changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
         problems.append(f"inputs changed: {changed[:3]}")
+    import threading
+
+    err = "" if not problems else ctx.run.last_err.get(threading.get_ident(), "")
     return Outcome(item.name, item.defect, item.expected, seen, not problems, problems,
-                   round(time.monotonic() - started, 2))
+                   round(time.monotonic() - started, 2), err)
 
 
 def table(outcomes: list[Outcome]) -> str:
