@@ -34,8 +34,9 @@ def _stopped_while_starting(signum, frame) -> None:  # noqa: ANN001 - a signal h
 
 def _startup_handlers() -> dict:
     """Install :func:`_stopped_while_starting` where the signal still has Python's own handling (main thread
-    only); returns what to restore."""
-    if threading.current_thread() is not threading.main_thread():
+    only); returns what to restore.  Not in a worker process, which imports this module while it re-runs the
+    console script as ``__mp_main__``: a worker stopped while starting ends silently, as it always did."""
+    if threading.current_thread() is not threading.main_thread() or "__mp_main__" in sys.modules:
         return {}
     own = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
     previous = {s: h for s, h in own.items() if signal.getsignal(s) is h}

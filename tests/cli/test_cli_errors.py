@@ -170,6 +170,16 @@ def test_a_signal_while_starting_is_one_line_not_a_traceback(tmp_path, module, s
     assert run.returncode == code and run.stderr == line + "\n" and run.stdout == "", run.stderr
 
 
+def test_a_worker_stopped_while_starting_ends_silently(tmp_path):
+    """A worker process imports cli/main.py while it re-runs the console script as ``__mp_main__``; stopped
+    there (the pool stops its workers when a run is interrupted), it must not print the command's line too —
+    the adversarial replay saw "terminated by SIGTERM" twice."""
+    code = "import sys, types; sys.modules['__mp_main__'] = types.ModuleType('__mp_main__'); " + _STOP_WHILE_IMPORTING
+    run = subprocess.run([sys.executable, "-c", code, "forensics._shared.filters", str(int(signal.SIGTERM)), "info",
+                          str(tmp_path)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == -signal.SIGTERM and run.stderr == "", run.stderr
+
+
 # ----------------------------------------------------------------------------- D21: exit codes
 @pytest.mark.parametrize("argv", [
     ["simulate", "scenes", "OUT", "--count", "0"],
