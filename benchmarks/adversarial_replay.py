@@ -70,7 +70,7 @@ def run_case(item: Case, ctx: Ctx, before: dict[str, str]) -> Outcome:
         problems.append(f"inputs changed: {changed[:3]}")
     import threading
 
-    err = "" if not problems else ctx.run.last_err.get(threading.get_ident(), "")
+    err = "" if not problems else getattr(ctx.run, "last_err", {}).get(threading.get_ident(), "")
     return Outcome(item.name, item.defect, item.expected, seen, not problems, problems,
                    round(time.monotonic() - started, 2), err)
 
