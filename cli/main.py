@@ -11,15 +11,49 @@ import argparse
 import contextlib
 import importlib
 import os
+import signal
 import sys
+import threading
 import traceback
 import warnings
 from collections.abc import Iterator
 
-from forensics import __version__
-from forensics._shared.lifetime import sigterm_as_interrupt
-from forensics.cli.common import EXIT_FAILURE, EXIT_USAGE, guard_outputs, say
-from forensics.cli.errors import debug, describe
+
+_STARTUP_EXITS = {signal.SIGINT: (b"forensics: interrupted\n", 130),
+                  signal.SIGTERM: (b"forensics: terminated by SIGTERM\n", 143)}
+
+
+def _stopped_while_starting(signum, frame) -> None:  # noqa: ANN001 - a signal handler's signature
+    """Ctrl-C or SIGTERM while the library is still being imported (about a second: scipy): the command's one
+    line and exit code (130, 143), not the traceback of whatever module was loading.  Nothing has been
+    written yet, so the process may end at once."""
+    message, code = _STARTUP_EXITS[signum]
+    os.write(2, message)
+    os._exit(code)
+
+
+def _startup_handlers() -> dict:
+    """Install :func:`_stopped_while_starting` where the signal still has Python's own handling (main thread
+    only); returns what to restore.  Not in a worker process, which imports this module while it re-runs the
+    console script as ``__mp_main__``: a worker stopped while starting ends silently, as it always did."""
+    if threading.current_thread() is not threading.main_thread() or "__mp_main__" in sys.modules:
+        return {}
+    own = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+    previous = {s: h for s, h in own.items() if signal.getsignal(s) is h}
+    for signum in previous:
+        signal.signal(signum, _stopped_while_starting)
+    return previous
+
+
+_PREVIOUS = _startup_handlers()  # restored once the imports below are done; main() covers the parser's building
+
+from forensics import __version__  # noqa: E402 - after the start-up handlers, which must cover these imports
+from forensics._shared.lifetime import sigterm_as_interrupt  # noqa: E402
+from forensics.cli.common import EXIT_FAILURE, EXIT_USAGE, guard_outputs, say  # noqa: E402
+from forensics.cli.errors import debug, describe  # noqa: E402
+
+for _signum, _handler in _PREVIOUS.items():
+    signal.signal(_signum, _handler)
 
 # Each module defines register(subparsers); order is the order in --help.
 COMMAND_MODULES = ["demo", "simulate", "info", "fingerprint", "same_device", "identify", "cluster", "defects", "date", "validate", "model", "impact"]
@@ -89,8 +123,12 @@ def _fail(exc: BaseException) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:  # building the parser imports every command's module: Ctrl-C or SIGTERM there stop it like any other
+        with sigterm_as_interrupt():
+            parser = build_parser()
+            args = parser.parse_args(argv)
+    except KeyboardInterrupt as exc:
+        return _fail(exc)
     if not getattr(args, "handler", None):
         parser.print_help(sys.stderr)
         return EXIT_USAGE

@@ -181,7 +181,9 @@ def write_json(path: str | os.PathLike, obj: Any, force: bool = False) -> Path:
 def atomic_directory(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; on success it replaces ``path``, on failure it is removed.
 
-    The folder gets the mode ``mkdir()`` would give it (umask applied).
+    The folder gets the mode ``mkdir()`` would give it (umask applied).  A full disk or quota while its files
+    are written is raised as :class:`OSError` naming ``path``, or the file's place in it (the temporary folder
+    means nothing to the user), after the temporary folder is removed.
     """
     path = refuse_existing(path, force)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -189,9 +191,26 @@ def atomic_directory(path: str | os.PathLike, force: bool = False) -> Iterator[P
     try:
         yield tmp
         move_directory_into_place(tmp, path)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        named = _name_inside(exc, tmp, path)
+        if named is exc:
+            raise
+        raise named from exc
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _name_inside(exc: OSError, tmp: Path, path: Path) -> OSError:
+    """``exc`` naming what the user asked for: a file in the temporary folder ``tmp`` (gone by now) by its place
+    in ``path``, and a device error without a name by ``path`` itself."""
+    if exc.filename is not None and Path(exc.filename).is_relative_to(tmp) and exc.errno is not None:
+        named = OSError(exc.errno, exc.strerror or os.strerror(exc.errno),
+                        str(path / Path(exc.filename).relative_to(tmp)))
+        named.__cause__ = exc
+        return named
+    return _name_the_file(exc, path)
 
 
 def move_directory_into_place(tmp: Path, path: Path) -> None:

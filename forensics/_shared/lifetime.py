@@ -2,11 +2,13 @@
 
 What ``timeout``, systemd and batch schedulers send is SIGTERM, whose default action kills the driver on
 the spot: no clean-up, and worker processes (children of multiprocessing's fork server, not of the driver)
-left blocked forever on their queues.  Two pieces prevent that:
+left blocked forever on their queues.  Three pieces prevent that:
 
 * :func:`sigterm_as_interrupt` (used by the command line around a command) turns SIGTERM into
   :class:`Terminated`, a :class:`KeyboardInterrupt`: every clean-up that runs for Ctrl-C runs for it —
   temporary files removed, resumable work kept, workers stopped — and the command exits 143;
+* :func:`signals_deferred` (around the start of a worker process) holds Ctrl-C and SIGTERM back until a
+  worker is started whole and recorded, so that it can be stopped;
 * :func:`exit_with` (run in every worker process) ends the worker as soon as the driver's process ends,
   however it ended (SIGKILL included), so nothing is left behind; the fork server then exits by itself
   when the last holder of its "alive" pipe is gone.
@@ -57,6 +59,33 @@ def sigterm_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Within the block, Ctrl-C and SIGTERM wait; they arrive (and raise) as it ends.
+
+    For a step that must not be cut in half: starting a worker process.  Interrupted there, the driver has
+    asked the fork server for a worker but not recorded it, so the worker is never stopped (it then waits
+    for the call queue's lock forever, and so does the pool's shutdown), or the worker reads half of its
+    start-up data and prints an ``EOFError`` traceback.  The signals are noted by a handler of their own and
+    raised again, to the handlers in place before, as the block ends (a signal mask would not do: the
+    kernel hands a process's signal to any thread that does not block it).  Only in the main thread, where
+    Python runs signal handlers.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {signum: signal.signal(signum, lambda signum, frame: held.append(signum))
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)
 
 
 #: Exit status of a worker that ends because its driver is gone (the driver cannot read it any more).

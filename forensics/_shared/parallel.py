@@ -60,7 +60,7 @@ from forensics._shared.checkpoint import (  # noqa: F401 — part of this module
     resumable_directory,
 )
 from forensics._shared.errors import UsageError
-from forensics._shared.lifetime import exit_with
+from forensics._shared.lifetime import exit_with, signals_deferred
 from forensics._shared.progress import Progress, no_progress
 
 T = TypeVar("T")
@@ -396,7 +396,8 @@ class Executor:
         workers = min(self.workers, len(todo))
         threads = max(1, available_cores() // workers)
         context = multiprocessing.get_context("forkserver" if sys.platform.startswith("linux") else "spawn")
-        if context.get_start_method() == "forkserver":
+        forkserver = context.get_start_method() == "forkserver"
+        if forkserver:
             _start_forkserver(context)
         environ = {k: os.environ.get(k) for k in _PATH_VARIABLES}
         attempts = {i: 0 for i in todo}
@@ -410,7 +411,9 @@ class Executor:
                 while queue or running:
                     while queue and len(running) < self._window_size():
                         i = queue.pop(0)
-                        running[pool.submit(_run_process_item, fn, items[i], with_shared)] = i
+                        # submit() may start a worker: whole (recorded, so it can be stopped) or not at all.
+                        with signals_deferred() if forkserver else contextlib.nullcontext():
+                            running[pool.submit(_run_process_item, fn, items[i], with_shared)] = i
                     finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
                     for future in finished:
                         i = running.pop(future)

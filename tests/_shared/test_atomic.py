@@ -136,6 +136,39 @@ def test_device_errors_without_a_name_get_the_output_name(tmp_path):
     assert other.value.filename == "/some/input"  # an error about another file keeps its name
 
 
+def test_a_full_device_under_a_report_folder_names_the_folder(tmp_path, cli):
+    """Found by the adversarial replay (D14): a report whose PNG write hit a file-size limit said only "file too
+    large", naming nothing, because the files inside the temporary folder are written by plain ``write_bytes``.
+    The error now names the report folder, and the temporary folder is gone."""
+    with pytest.raises(OSError) as caught, atomic_directory(tmp_path / "report") as folder:
+        (folder / "plot.png").write_bytes(b"x")
+        raise OSError(errno.EFBIG, "File too large")  # what write() raises past `ulimit -f`, without a name
+    assert caught.value.errno == errno.EFBIG and caught.value.filename == str(tmp_path / "report")
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(OSError) as inside, atomic_directory(tmp_path / "scenes") as folder:
+        raise OSError(errno.EFBIG, "File too large", str(folder / "scene_0000.png"))
+    assert inside.value.errno == errno.EFBIG and inside.value.filename == str(tmp_path / "scenes" / "scene_0000.png")
+    with pytest.raises(FileNotFoundError) as other, atomic_directory(tmp_path / "r2"):
+        raise FileNotFoundError(errno.ENOENT, "an input", "/some/input")
+    assert other.value.filename == "/some/input" and list(tmp_path.iterdir()) == []
+
+
+def test_a_report_cut_short_by_the_device_is_one_line_naming_it(tmp_path):
+    """End to end under ``ulimit -f``: exit 3, one line naming the report folder, no report and no temporary."""
+    from forensics.sensor.simulate import make_scenes
+
+    make_scenes(tmp_path / "src", 3, (240, 320), rng=1)
+    script = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000)); "
+              "from forensics.cli.main import main; sys.exit(main(sys.argv[1:]))")
+    run = subprocess.run([sys.executable, "-c", script, "defects", "detect", str(tmp_path / "src"), "--mask", "all",
+                          "--workers", "1", "--quiet", "--report", str(tmp_path / "r")],
+                         capture_output=True, text=True, timeout=300)
+    errors = [line for line in run.stderr.splitlines() if not line.startswith("warning: ")]
+    assert run.returncode == 3 and errors == [f"forensics: error: {tmp_path / 'r'}: file too large (a file-size limit: "
+                                              "see ulimit -f)"], run.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
+
+
 def test_write_bytes_replaces_only_with_force(tmp_path):
     from forensics._shared.errors import UsageError
 

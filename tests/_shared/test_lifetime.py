@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from forensics._shared.lifetime import Terminated, signals_deferred, sigterm_as_interrupt
 from forensics._shared.parallel import Executor
 from forensics.fixtures import workitems
 
@@ -140,3 +141,18 @@ def _state(pid: int) -> str:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     except OSError:
         return "gone"
+
+
+def test_signals_wait_for_the_end_of_a_deferred_block():
+    """Found by the adversarial replay: SIGTERM while the pool started a worker left that worker unrecorded,
+    never stopped, and the pool's shutdown waiting for it forever (or the worker printed an EOFError
+    traceback).  Starting a worker is now deferred-signal work: the signal arrives as the block ends."""
+    reached = False
+    with pytest.raises(Terminated), sigterm_as_interrupt():
+        with signals_deferred():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.2)  # without the deferral, Terminated is raised here
+            reached = True
+    assert reached
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # every handler is back as it was
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

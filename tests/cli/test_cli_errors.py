@@ -10,6 +10,9 @@ from __future__ import annotations
 import csv
 import errno
 import json
+import signal
+import subprocess
+import sys
 import warnings
 import zipfile
 from pathlib import Path
@@ -136,6 +139,45 @@ def test_an_output_under_a_file_is_one_line(cli, tmp_path):
     (tmp_path / "file").write_text("x")
     code, _, err = cli("simulate", "scenes", tmp_path / "file" / "sub", "--count", "2", "--size", "16x16")
     assert code == 3 and one_line(err) and "file" in err
+
+
+# Ctrl-C or SIGTERM while the command is still starting: the signal is sent from an import hook when the named
+# module starts loading — inside cli/main.py's own imports (scipy, about a second) or inside the building of the
+# parser (the last command module) — so the test does not depend on timing.
+_STOP_WHILE_IMPORTING = """
+import os, signal, sys
+class Trip:
+    def find_spec(self, name, path=None, target=None):
+        if name == sys.argv[1]:
+            os.kill(os.getpid(), int(sys.argv[2]))
+        return None
+sys.meta_path.insert(0, Trip())
+from forensics.cli.main import main
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+@pytest.mark.parametrize("module", ["forensics._shared.filters", "forensics.cli.impact"], ids=["imports", "parser"])
+@pytest.mark.parametrize("signum, code, line", [(signal.SIGINT, 130, "forensics: interrupted"),
+                                                (signal.SIGTERM, 143, "forensics: terminated by SIGTERM")],
+                         ids=["SIGINT", "SIGTERM"])
+def test_a_signal_while_starting_is_one_line_not_a_traceback(tmp_path, module, signum, code, line):
+    """Found by the adversarial replay: Ctrl-C in the first second of a command (importing the library, building
+    the parser) printed the traceback of whatever module was loading and died of SIGINT; SIGTERM there ended
+    it without a word."""
+    run = subprocess.run([sys.executable, "-c", _STOP_WHILE_IMPORTING, module, str(int(signum)), "info", str(tmp_path)],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == code and run.stderr == line + "\n" and run.stdout == "", run.stderr
+
+
+def test_a_worker_stopped_while_starting_ends_silently(tmp_path):
+    """A worker process imports cli/main.py while it re-runs the console script as ``__mp_main__``; stopped
+    there (the pool stops its workers when a run is interrupted), it must not print the command's line too —
+    the adversarial replay saw "terminated by SIGTERM" twice."""
+    code = "import sys, types; sys.modules['__mp_main__'] = types.ModuleType('__mp_main__'); " + _STOP_WHILE_IMPORTING
+    run = subprocess.run([sys.executable, "-c", code, "forensics._shared.filters", str(int(signal.SIGTERM)), "info",
+                          str(tmp_path)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == -signal.SIGTERM and run.stderr == "", run.stderr
 
 
 # ----------------------------------------------------------------------------- D21: exit codes
