@@ -24,7 +24,7 @@ _STARTUP_EXITS = {signal.SIGINT: (b"forensics: interrupted\n", 130),
 
 
 def _stopped_while_starting(signum, frame) -> None:  # noqa: ANN001 - a signal handler's signature
-    """Ctrl-C or SIGTERM while the library is still being imported (about a second: scipy): the command's one
+    """Ctrl-C or SIGTERM while the library is still being imported (and the parser built): the command's one
     line and exit code (130, 143), not the traceback of whatever module was loading.  Nothing has been
     written yet, so the process may end at once."""
     message, code = _STARTUP_EXITS[signum]

@@ -5,38 +5,26 @@ request may allocate (:mod:`~forensics._shared.limits`), untrusted text made saf
 (:func:`printable`) and the one way random numbers enter the toolkit (``rng`` is a Generator or an integer
 seed, see :mod:`forensics._shared.rng`).  It imports nothing else of the package.
 """
-from forensics._shared.arrays import bits_full_scale, full_scale, grey_luma, grey_mean, infer_full_scale
-from forensics._shared.atomic import (
-    atomic_directory,
-    atomic_file,
-    current_umask,
-    mkdtemp_like_mkdir,
-    mkstemp_like_open,
-    refuse_existing,
-    refuse_inputs,
-    write_bytes,
-    write_json,
-    write_text,
-)
-from forensics._shared.errors import ForensicsError, InputError, UsageError
-from forensics._shared.filters import median_filter
-from forensics._shared.jsonsafe import dumps, to_jsonable
-from forensics._shared.limits import age_limit, memory_limit, pixel_limit, require_ages, require_memory, require_pixels
-from forensics._shared.plugins import is_class_spec, load_class
-from forensics._shared.progress import Progress, choose_progress, no_progress, tqdm_progress
-from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record, spawn
-from forensics._shared.text import printable
+import lazy_loader as _lazy
 
-__all__ = [
-    "bits_full_scale", "full_scale", "grey_luma", "grey_mean", "infer_full_scale",
-    "atomic_directory", "atomic_file", "current_umask", "mkdtemp_like_mkdir", "mkstemp_like_open", "refuse_existing",
-    "refuse_inputs", "write_bytes", "write_json", "write_text",
-    "ForensicsError", "InputError", "UsageError",
-    "median_filter",
-    "dumps", "to_jsonable",
-    "age_limit", "memory_limit", "pixel_limit", "require_ages", "require_memory", "require_pixels",
-    "is_class_spec", "load_class",
-    "Progress", "choose_progress", "no_progress", "tqdm_progress",
-    "RngLike", "as_generator", "keyed_generator", "seed_record", "spawn",
-    "printable",
-]
+# Names load their module on first use (as in the domain packages): the CLI imports this package before it
+# knows the command, and importing every helper eagerly (scipy.ndimage for the median filter) cost a third of a
+# second at every command's start, before the signal handlers of a start-up were in place.
+__getattr__, __dir__, __all__ = _lazy.attach(
+    __name__,
+    submod_attrs={
+        "arrays": ["bits_full_scale", "full_scale", "grey_luma", "grey_mean", "infer_full_scale"],
+        "atomic": [
+            "atomic_directory", "atomic_file", "current_umask", "mkdtemp_like_mkdir", "mkstemp_like_open",
+            "refuse_existing", "refuse_inputs", "write_bytes", "write_json", "write_text",
+        ],
+        "errors": ["ForensicsError", "InputError", "UsageError"],
+        "filters": ["median_filter"],
+        "jsonsafe": ["dumps", "to_jsonable"],
+        "limits": ["age_limit", "memory_limit", "pixel_limit", "require_ages", "require_memory", "require_pixels"],
+        "plugins": ["is_class_spec", "load_class"],
+        "progress": ["Progress", "choose_progress", "no_progress", "tqdm_progress"],
+        "rng": ["RngLike", "as_generator", "keyed_generator", "seed_record", "spawn"],
+        "text": ["printable"],
+    },
+)

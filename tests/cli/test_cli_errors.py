@@ -142,7 +142,7 @@ def test_an_output_under_a_file_is_one_line(cli, tmp_path):
 
 
 # Ctrl-C or SIGTERM while the command is still starting: the signal is sent from an import hook when the named
-# module starts loading — inside cli/main.py's own imports (scipy, about a second) or inside the building of the
+# module starts loading — inside cli/main.py's own imports (the output helpers) or inside the building of the
 # parser (the last command module) — so the test does not depend on timing.
 _STOP_WHILE_IMPORTING = """
 import os, signal, sys
@@ -157,7 +157,7 @@ sys.exit(main(sys.argv[3:]))
 """
 
 
-@pytest.mark.parametrize("module", ["forensics._shared.filters", "forensics.cli.impact"], ids=["imports", "parser"])
+@pytest.mark.parametrize("module", ["forensics._shared.jsonsafe", "forensics.cli.impact"], ids=["imports", "parser"])
 @pytest.mark.parametrize("signum, code, line", [(signal.SIGINT, 130, "forensics: interrupted"),
                                                 (signal.SIGTERM, 143, "forensics: terminated by SIGTERM")],
                          ids=["SIGINT", "SIGTERM"])
@@ -175,7 +175,7 @@ def test_a_worker_stopped_while_starting_ends_silently(tmp_path):
     there (the pool stops its workers when a run is interrupted), it must not print the command's line too —
     the adversarial replay saw "terminated by SIGTERM" twice."""
     code = "import sys, types; sys.modules['__mp_main__'] = types.ModuleType('__mp_main__'); " + _STOP_WHILE_IMPORTING
-    run = subprocess.run([sys.executable, "-c", code, "forensics._shared.filters", str(int(signal.SIGTERM)), "info",
+    run = subprocess.run([sys.executable, "-c", code, "forensics._shared.jsonsafe", str(int(signal.SIGTERM)), "info",
                           str(tmp_path)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert run.returncode == -signal.SIGTERM and run.stderr == "", run.stderr
 
