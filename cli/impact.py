@@ -35,6 +35,9 @@ def register(sub) -> None:
     parser.add_argument("--years", default="0:96:8", help="ages START:STOP:STEP or a list (default 0:96:8)")
     parser.add_argument("--matcher", action="append", metavar="NAME",
                         help="matcher (repeatable; default: masek and ko)")
+    parser.add_argument("--segmentation", choices=["caht", "wahet"], default="caht",
+                        help="segmentation of the built-in matchers: contrast-adjusted Hough (caht, default) or "
+                             "weighted adaptive Hough and ellipsopolar transforms (wahet), the paper's two")
     parser.add_argument("--protocol", choices=["same-age", "enrol-0", "both"], default="both",
                         help="comparison protocol (default both)")
     parser.add_argument("--impostors", type=int, metavar="N",
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     bits = source_bit_depth(source.frames[0].info().dtype)
     sensors = parse_sensors(args.sensors, shape, bits)
     ages = parse_years(args.years)
-    matchers = load_matchers(args.matcher or ["masek", "ko"])
+    matchers = load_matchers(args.matcher or ["masek", "ko"], segmentation=args.segmentation)
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
     with executor_for(args) as ex:
         result = run_impact(source, sensors, ages, matchers, rng=args.seed, protocols=protocols, n_boot=args.boot,
@@ -104,6 +107,9 @@ def summary(result) -> str:
                         f"[{100 * last.ci[0]:.2f}, {100 * last.ci[1]:.2f}]")
                 if len(result.ages) > 1:
                     line += "; " + result.trend(sensor, matcher, protocol).describe()
+                failed = max(len(u.failed_images) for u in result.trajectory(sensor, matcher, protocol))
+                if failed:
+                    line += f"; up to {failed} image(s) per age failed segmentation (not scored)"
                 lines.append(line)
     if result.resumed_units:
         lines.append(f"\n{result.resumed_units} results taken from the checkpoint")

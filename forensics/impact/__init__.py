@@ -21,6 +21,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "ko": ["KoMatcher"],
         "matchers": [
             "BUILTIN_MATCHERS", "ExternalMatcher", "Matcher", "compare_all", "load_matcher", "load_matchers",
+            "template_failure",
         ],
         "experiment": [
             "PROTOCOLS", "ImpactResult", "MatcherTrend", "UnitResult", "run_impact",

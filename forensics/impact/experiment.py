@@ -48,7 +48,7 @@ from forensics._shared.errors import InputError, UsageError
 from forensics._shared.parallel import Checkpoint, Executor, in_process, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
-from forensics.impact.matchers import Matcher, compare_all
+from forensics.impact.matchers import Matcher, compare_all, template_failure
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
 from forensics.sensor.presets import PRESETS, preset
@@ -129,7 +129,13 @@ def parse_sensors(spec: str, shape: tuple[int, int], bit_depth: int) -> list[Sen
 
 @dataclass
 class UnitResult:
-    """One EER: a sensor at an age, one matcher, one protocol."""
+    """One EER: a sensor at an age, one matcher, one protocol.
+
+    ``failed_images`` are the images (file names) whose template at this age carries a failed segmentation
+    (:func:`~forensics.impact.matchers.template_failure`); ``excluded_pairs`` the comparisons left out because
+    one of their two templates failed (for ``enrol-0`` the enrolment template at age 0 counts too).  A failed
+    image is not scored: it would be compared as if its circles were an eye.
+    """
 
     sensor: str
     age: float
@@ -137,10 +143,14 @@ class UnitResult:
     protocol: str
     eer: ClassBootstrap
     histogram: dict[str, Any]
+    failed_images: tuple[str, ...] = ()
+    excluded_pairs: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {"sensor": self.sensor, "age": self.age, "matcher": self.matcher, "protocol": self.protocol,
-                **self.eer.to_dict()}
+                **self.eer.to_dict(),
+                "segmentation_failures": {"images": list(self.failed_images), "n": len(self.failed_images),
+                                          "excluded_pairs": self.excluded_pairs}}
 
 
 @dataclass(frozen=True)
@@ -216,6 +226,8 @@ class ImpactResult:
     spreads: list[Spread] = field(default_factory=list)
     elapsed_s: float = 0.0
     resumed_units: int = 0
+    #: Segmentation method of each matcher that segments (``matcher.segmenter.method``), None for the others.
+    segmentations: dict[str, str | None] = field(default_factory=dict)
 
     def unit(self, sensor: str, age: float, matcher: str, protocol: str) -> UnitResult:
         for u in self.units:
@@ -240,7 +252,7 @@ class ImpactResult:
                 "seed": self.seed, "units": [u.to_dict() for u in self.units],
                 "trends": [t.to_dict() for t in self.trends], "spreads": [s.to_dict() for s in self.spreads],
                 "elapsed_s": self.elapsed_s, "resumed_units": self.resumed_units,
-                "forensics_version": __version__}
+                "segmentations": dict(self.segmentations), "forensics_version": __version__}
 
 
 def _classes(source: Dataset) -> tuple[np.ndarray, list[str]]:
@@ -335,19 +347,33 @@ def _impact_task(job: _ImpactJob, item: tuple[int, int]) -> dict[str, Any]:
     enrol = templates if age == 0.0 else (job.enrol or {}).get(s_index)
     units = []
     for matcher in job.matchers:
+        probe = templates[matcher.name]
+        probe_failed = _failed(probe)
+        names = tuple(Path(job.paths[k]).name for k in np.flatnonzero(probe_failed))
         for protocol in job.protocols:
-            gallery = templates[matcher.name] if protocol == "same-age" else enrol[matcher.name]
-            scores = _scores(matcher, gallery, templates[matcher.name], i, j, sampled)
+            gallery = probe if protocol == "same-age" else enrol[matcher.name]
+            keep = ~(_failed(gallery)[i] | probe_failed[j])
+            if not keep.any():
+                raise InputError(f"matcher {matcher.name}: every comparison at age {age:g} (sensor {spec.name}) "
+                                 f"involves an image whose segmentation failed; nothing can be scored")
+            ki, kj = i[keep], j[keep]
+            scores = _scores(matcher, gallery, probe, ki, kj, sampled)
             if not np.all(np.isfinite(scores)):
                 raise InputError(f"matcher {matcher.name} returned a score that is not a finite number")
-            pairs = PairedScores.of(scores, job.labels[i], job.labels[j], job.n_classes,
+            pairs = PairedScores.of(scores, job.labels[ki], job.labels[kj], job.n_classes,
                                     higher_is_similar=matcher.higher_is_similar)
             # The bootstrap's matrix products are BLAS calls; OpenBLAS gives the same bits whatever its thread
             # count (it never splits a dot product), so a worker's EERs equal the in-process ones.
             units.append(UnitResult(spec.name, age, matcher.name, protocol,
                                     class_bootstrap_eer(pairs, job.weights, job.level),
-                                    _histogram(pairs, matcher.higher_is_similar)))
+                                    _histogram(pairs, matcher.higher_is_similar), names,
+                                    int((~keep).sum())))
     return {"units": units, "enrol": templates if age == 0.0 and job.keep_enrol else None}
+
+
+def _failed(templates: Sequence[Any]) -> np.ndarray:
+    """Which templates carry a failed segmentation (:func:`~forensics.impact.matchers.template_failure`)."""
+    return np.array([template_failure(t) is not None for t in templates], dtype=bool)
 
 
 def _aged_templates(job: _ImpactJob, s_index: int, a_index: int) -> dict[str, list[Any]]:
@@ -495,8 +521,10 @@ def run_impact(
                      len(class_names), impostors, _stream_root(rng),
                      class_weights(len(class_names), n_boot, keyed_generator(rng, _BOOT_STREAM)), float(level),
                      keep_enrol="enrol-0" in protocols)
+    segmentations = {m.name: _segmentation_of(m) for m in matchers}
     config = {"source": str(source.root), "files": [f.file for f in source.frames], "sensors": [s.name for s in sensors],
               "models": [s.model.to_dict() for s in sensors], "ages": ages, "matchers": names,
+              "segmentations": segmentations,
               "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
               "seed": seed_record(rng), "forensics_version": __version__}
     store = Checkpoint(checkpoint, config) if checkpoint is not None else None
@@ -504,11 +532,17 @@ def run_impact(
     units = [u for s in range(len(sensors)) for a in range(len(ages)) for u in found[s, a]]
     result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,
                           sampled, [s.name for s in sensors], ages, names, list(protocols), int(n_boot),
-                          float(level), seed_record(rng), units, resumed_units=resumed)
+                          float(level), seed_record(rng), units, resumed_units=resumed, segmentations=segmentations)
     result.trends = trends(result)
     result.spreads = spreads(result)
     result.elapsed_s = time.perf_counter() - started
     return result
+
+
+def _segmentation_of(matcher: Matcher) -> str | None:
+    """The segmentation method a matcher uses (its ``segmenter.method``), or None if it has no segmenter."""
+    method = getattr(getattr(matcher, "segmenter", None), "method", None)
+    return str(method) if method is not None else None
 
 
 def _check_design(ages: list[float], matchers: Sequence[Matcher], protocols: Sequence[str]) -> None:

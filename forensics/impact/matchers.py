@@ -45,7 +45,7 @@ from forensics._shared.plugins import is_class_spec, load_class
 from forensics.impact.iriscode import IrisCode, IrisCodeMatcher, hamming_all, hamming_distance
 from forensics.impact.ko import KoMatcher
 from forensics.impact.masek import MasekMatcher, log_gabor_1d
-from forensics.impact.segment import Segmenter
+from forensics.impact.segment import DEFAULT_SEGMENTATION, Segmenter
 
 
 # --------------------------------------------------------------------------- interface
@@ -85,6 +85,19 @@ def compare_all(matcher: Any, templates_a: Sequence[Any], templates_b: Sequence[
         for j, b in enumerate(templates_b):
             out[i, j] = float(matcher.compare(a, b))
     return out
+
+
+def template_failure(template: Any) -> str | None:
+    """Why a template's segmentation failed, or None.
+
+    A template that carries a :class:`~forensics.impact.segment.Segmentation` (as ``template.segmentation``,
+    like the built-ins' :class:`IrisCode`) with ``ok`` False is a failure to acquire: the experiment leaves its
+    comparisons out and counts it.  Templates of other matchers are never failures.
+    """
+    seg = getattr(template, "segmentation", None)
+    if seg is None or getattr(seg, "ok", True):
+        return None
+    return str(getattr(seg, "reason", "") or "segmentation failed")
 
 
 # --------------------------------------------------------------------------- built-ins
@@ -230,15 +243,22 @@ def load_matcher(spec: str, segmenter: Segmenter | None = None) -> Matcher:
     return _check_matcher(obj, spec)
 
 
-def load_matchers(specs: Sequence[str]) -> list[Matcher]:
+def load_matchers(specs: Sequence[str], segmentation: str = DEFAULT_SEGMENTATION) -> list[Matcher]:
     """Matchers for several specs, the built-ins sharing one :class:`Segmenter` (one segmentation per image).
+
+    Parameters
+    ----------
+    specs
+        Matcher specs (see :func:`load_matcher`).
+    segmentation
+        The built-ins' segmentation: ``caht`` or ``wahet`` (:data:`~forensics.impact.segment.SEGMENTATIONS`).
 
     Raises
     ------
     UsageError
-        For a bad spec (see :func:`load_matcher`) or two matchers with the same name.
+        For a bad spec (see :func:`load_matcher`), an unknown segmentation or two matchers with the same name.
     """
-    segmenter = Segmenter()
+    segmenter = Segmenter(method=segmentation)
     matchers = [load_matcher(s, segmenter=segmenter) for s in specs]
     names = [m.name for m in matchers]
     dupes = sorted({n for n in names if names.count(n) > 1})

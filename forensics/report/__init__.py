@@ -1,7 +1,7 @@
 """Everything that is drawn or laid out: the HTML writer (:class:`Report`, :func:`new_figure`) and one
 module of figures per domain — :mod:`~forensics.report.ageing`, :mod:`~forensics.report.prnu`,
 :mod:`~forensics.report.defects`, :mod:`~forensics.report.scores`, :mod:`~forensics.report.validate`,
-:mod:`~forensics.report.cluster`, :mod:`~forensics.report.identify`
+:mod:`~forensics.report.cluster`, :mod:`~forensics.report.identify`, :mod:`~forensics.report.segmentation`
 (and the model check's) — plus the demo's page.  Report functions take result objects and never
 re-estimate; science modules never import this package.
 """
@@ -18,6 +18,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "identify": ["add_identification", "identification_report"],
         "prnu": ["add_same_device", "match_report", "same_device_report"],
         "scores": ["plot_det", "plot_score_histograms"],
+        "segmentation": ["SegmentedImage", "overlay_figure", "segmentation_report"],
         "validate": ["validation_report"],
     },
 )

@@ -3,20 +3,18 @@
 A boundary of the eye (pupil margin, limbus) is dark inside and bright outside; along a ray from a point inside,
 its position is the steepest rise of the smoothed grey level.  These tools turn rays into circles:
 
-* :func:`ray_edges` — up to a few rises (local maxima of the radial derivative) per ray;
-* :func:`consensus_circle` — among all circles within a window of a start, the one on which most rays have a
-  rise within a narrow band (an exhaustive, start-independent RANSAC), then refitted by least squares to those
-  rises.  Unlike a fit that follows each ray's single steepest rise from wherever it starts, it returns the same
-  circle from any start within the window, which a boundary seen only on its lateral arcs needs (its vertical
-  position is loosely held).  The IITD ground truth (``tests/impact/data``) is defined with it;
+* :func:`polar_fit` — among all circles within a window of a start, the one along which the rays' own
+  strongest rises are best met: a smooth score searched exhaustively, so that any start within the window gives
+  the same circle, which a boundary seen only on its lateral arcs needs (its vertical position is loosely held).
+  The limbus marks of the IITD ground truth (``tests/impact/data``) were checked against it;
+* :func:`fit_rays` — each ray's steepest rise near a circle and a robust (Tukey) circle fit, repeated with a
+  shrinking window: sharp boundaries such as the pupil's;
 * :func:`band_contrast` — how much brighter a band outside a circle is than a band inside (the limbus has the
   sclera outside; rings within the iris do not).
 
 Angles are degrees counter-clockwise from +x with y up on screen (``x = xc + r cos θ``, ``y = yc − r sin θ``).
 """
 from __future__ import annotations
-
-import warnings
 
 import numpy as np
 from scipy import ndimage
@@ -45,92 +43,6 @@ def profiles(smooth: np.ndarray, xs, ys, r_lo: float, r_hi: float, ang: np.ndarr
     inside = ((px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)).all(axis=2)
     values = ndimage.map_coordinates(smooth, [py.ravel(), px.ravel()], order=1, mode="nearest").reshape(px.shape)
     return rs, values, inside
-
-
-def ray_edges(smooth: np.ndarray, centre: tuple[float, float], r_lo: float, r_hi: float, ang: np.ndarray,
-              per_ray: int = 3, dr: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rises along rays from ``centre``: ``(x, y, strength, ray)`` of up to ``per_ray`` per ray.
-
-    A rise is a local maximum of the radial derivative (central differences of ``smooth``) with positive value,
-    between ``r_lo`` and ``r_hi``; the strongest ``per_ray`` of each ray inside the image are kept.
-    """
-    rs, prof, inside = profiles(smooth, centre[0], centre[1], r_lo - dr, r_hi + dr, ang, dr)
-    prof, inside = prof[0], inside[0]
-    deriv = (prof[:, 2:] - prof[:, :-2]) / (2 * dr)
-    radii = rs[1:-1]
-    peak = np.zeros_like(deriv, dtype=bool)
-    peak[:, 1:-1] = (deriv[:, 1:-1] > deriv[:, :-2]) & (deriv[:, 1:-1] >= deriv[:, 2:]) & (deriv[:, 1:-1] > 0)
-    peak &= inside[:, None]
-    strength = np.where(peak, deriv, 0.0)
-    if per_ray < strength.shape[1]:
-        order = np.argsort(-strength, axis=1)[:, :per_ray]
-    else:
-        order = np.argsort(-strength, axis=1)
-    rows = np.repeat(np.arange(ang.size), order.shape[1])
-    cols = order.ravel()
-    keep = strength[rows, cols] > 0
-    rows, cols = rows[keep], cols[keep]
-    r = radii[cols]
-    x = centre[0] + r * np.cos(ang[rows])
-    y = centre[1] - r * np.sin(ang[rows])
-    return x, y, strength[rows, cols], rows
-
-
-def consensus_circle(smooth: np.ndarray, start: Circle, arcs: Arcs, window: float = 0.08, band: float = 1.5,
-                     step: float = 1.0, per_ray: int = 3) -> tuple[Circle, float, float]:
-    """The circle near ``start`` that most rays agree on: ``(circle, support, strength)``.
-
-    Rises (:func:`ray_edges`) are taken on rays from ``start``'s centre every ``step`` degrees over ``arcs``,
-    within ±2 ``window`` of its radius.  Every circle with its centre within ``window`` × the radius of the
-    start's (1-px grid) and its radius within ±``window`` (0.5-px grid) is scored by the number of rays with a
-    rise within ``band`` px of it (ties: the larger sum of rises); the best is refitted by least squares to those
-    rises (one per ray, the nearest).  ``support`` is the fraction of the rays inside the image that agree,
-    ``strength`` the median rise of the agreeing ones (grey level per pixel).
-    """
-    x0, y0, r0 = start
-    ang = ray_angles(arcs, step)
-    ex, ey, es, ray = ray_edges(smooth, (x0, y0), r0 * (1 - 2 * window), r0 * (1 + 2 * window), ang, per_ray)
-    n_inside = int(profiles(smooth, x0, y0, r0 * (1 - 2 * window), r0 * (1 + 2 * window), ang)[2].sum())
-    if ex.size < 5 or n_inside < 5:
-        return (float(x0), float(y0), float(r0)), 0.0, 0.0
-    span = max(1, int(round(window * r0)))
-    offs = np.arange(-span, span + 1, dtype=float)
-    cx, cy = np.meshgrid(x0 + offs, y0 + offs)
-    cx, cy = cx.ravel(), cy.ravel()
-    dr = 0.5
-    r_lo = r0 * (1 - window)
-    n_r = int(np.floor(2 * window * r0 / dr)) + 1
-    dist = np.hypot(ex[None, :] - cx[:, None], ey[None, :] - cy[:, None])           # (centres, points)
-    # Every (centre, point) pair agrees with the radius bins within ``band`` of its distance: mark the point's
-    # ray in each, then count rays per (centre, radius) — one vote per ray however many rises it has.
-    agree = np.zeros((cx.size, n_r, ang.size), dtype=bool)
-    strength = np.zeros((cx.size, n_r))
-    centre_idx = np.broadcast_to(np.arange(cx.size)[:, None], dist.shape)
-    ray_idx = np.broadcast_to(ray[None, :], dist.shape)
-    reach = int(np.floor(band / dr))
-    base = np.rint((dist - r_lo) / dr).astype(np.int64)
-    for off in range(-reach, reach + 1):
-        b = base + off
-        ok = (b >= 0) & (b < n_r) & (np.abs(r_lo + b * dr - dist) <= band)
-        agree[centre_idx[ok], b[ok], ray_idx[ok]] = True
-        np.add.at(strength, (centre_idx[ok], b[ok]), np.broadcast_to(es[None, :], dist.shape)[ok])
-    count = agree.sum(axis=2)
-    c, j = np.unravel_index(int(np.lexsort((strength.ravel(), count.ravel()))[-1]), count.shape)
-    radius = r_lo + j * dr
-    near = np.abs(dist[c] - radius) <= band
-    # One point per agreeing ray: the one nearest the circle.
-    order = np.argsort(np.abs(dist[c] - radius))
-    seen: set[int] = set()
-    pick = []
-    for p in order:
-        if near[p] and ray[p] not in seen:
-            seen.add(int(ray[p]))
-            pick.append(p)
-    pick = np.array(pick, dtype=int)
-    circle = fit_circle(ex[pick], ey[pick]) if pick.size >= 5 else None
-    if circle is None:
-        circle = (float(cx[c]), float(cy[c]), float(radius))
-    return circle, float(pick.size / n_inside), float(np.median(es[pick])) if pick.size else 0.0
 
 
 def fit_circle(x: np.ndarray, y: np.ndarray) -> Circle | None:
@@ -166,24 +78,6 @@ def band_contrast(smooth: np.ndarray, circle: Circle, arcs: Arcs, width: float =
     outer = prof[:, rs >= r * (1 + gap)].mean(axis=1)
     inner = prof[:, rs <= r * (1 - gap)].mean(axis=1)
     return float(np.median(outer - inner))
-
-
-def median_rise(smooth: np.ndarray, xs, ys, r_lo: float, r_hi: float, ang: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Daugman's integro-differential operator with a median over rays, for several centres.
-
-    For each centre: the radius in ``[r_lo, r_hi]`` with the largest median radial derivative over the rays that
-    stay inside the image, and that median (``-inf`` with fewer than 5 rays inside).
-    """
-    rs, prof, inside = profiles(smooth, xs, ys, r_lo - 0.5, r_hi + 0.5, ang)
-    deriv = (prof[:, :, 2:] - prof[:, :, :-2]) / (rs[2] - rs[0])
-    deriv = np.where(inside[:, :, None], deriv, np.nan)
-    with warnings.catch_warnings():  # centres without rays inside give all-NaN slices
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(deriv, axis=1)
-    med = np.where(inside.sum(axis=1)[:, None] >= 5, med, -np.inf)
-    med = np.nan_to_num(med, nan=-np.inf)
-    k = np.argmax(med, axis=1)
-    return rs[1:-1][k], med[np.arange(med.shape[0]), k]
 
 
 def polar_fit(smooth: np.ndarray, start: Circle, arcs: Arcs, window: float = 0.08, step: float = 2.0,
@@ -238,3 +132,76 @@ def polar_fit(smooth: np.ndarray, start: Circle, arcs: Arcs, window: float = 0.0
     s2 = score(fx, fy, fr)
     c2, j2 = np.unravel_index(int(np.argmax(s2)), s2.shape)
     return (float(x0 + fx[c2]), float(y0 + fy[c2]), float(fr[j2])), float(s2[c2, j2])
+
+
+def fit_rays(smooth: np.ndarray, circle: Circle, arcs: Arcs, step: float = 2.0, window: float = 0.08,
+             rounds: int = 3) -> tuple[Circle, float, float]:
+    """Edge points on rays and a robust circle fit around ``circle``: ``(circle, strength, support)``.
+
+    On rays every ``step`` degrees over ``arcs`` from the current centre, the steepest rise of ``smooth``
+    within ``±window`` × the radius of the current circle is the ray's edge point; a circle is fitted to the
+    points by least squares with Tukey's biweight (points more than 4.7 × 1.5 px off get no weight: lashes
+    and lids crossing a ray), and the rays are cast again from the new centre with half the window.
+    ``strength`` is the median rise of the inlier points (per pixel), ``support`` the fraction of the rays
+    inside the image whose point is an inlier.
+    """
+    cx, cy, r = circle
+    ang = ray_angles(arcs, step)
+    cos, sin = np.cos(ang), np.sin(ang)
+    strength, support = 0.0, 0.0
+    half = max(3.0, window * r)
+    for _ in range(rounds):
+        rs, prof, inside = profiles(smooth, cx, cy, r - half - 1.0, r + half + 1.0, ang)
+        prof, inside = prof[0], inside[0]
+        if inside.sum() < 6:
+            return (cx, cy, r), 0.0, 0.0
+        deriv = (prof[inside, 2:] - prof[inside, :-2]) / (rs[2] - rs[0])
+        k = np.argmax(deriv, axis=1)
+        rise = deriv[np.arange(k.size), k]
+        rad = rs[1:-1][k]
+        px = cx + rad * cos[inside]
+        py = cy - rad * sin[inside]
+        valid = rise > 0
+        if valid.sum() < 6:
+            return (cx, cy, r), 0.0, 0.0
+        fit, weights = _robust_circle(px[valid], py[valid], (cx, cy, r))
+        if fit is None:
+            break
+        cx, cy, r = fit
+        inlier = weights > 0
+        strength = float(np.median(rise[valid][inlier])) if inlier.any() else 0.0
+        support = float(inlier.sum() / inside.sum())
+        half = max(2.0, half / 2)
+    return (float(cx), float(cy), float(r)), strength, support
+
+
+def _robust_circle(x: np.ndarray, y: np.ndarray, start: Circle, scale: float = 0.6, iters: int = 20):
+    """Circle through points by iteratively reweighted least squares with Tukey's biweight (c = 4.685 σ).
+
+    Linearised (Kåsa) fit ``x² + y² + D x + E y + F = 0`` weighted per point; returns ``(circle, weights)`` or
+    ``(None, None)`` when the points do not determine a circle.
+    """
+    cx, cy, r = start
+    wts = np.ones_like(x)
+    c = 4.685 * scale
+    for _ in range(iters):
+        res = np.hypot(x - cx, y - cy) - r
+        u = res / c
+        wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        if (wts > 0).sum() < 5:
+            return None, None
+        a = np.column_stack([x, y, np.ones_like(x)]) * wts[:, None]
+        b = -(x * x + y * y) * wts
+        try:
+            d, e, f = np.linalg.lstsq(a, b, rcond=None)[0]
+        except np.linalg.LinAlgError:
+            return None, None
+        ncx, ncy = -d / 2, -e / 2
+        r2 = ncx * ncx + ncy * ncy - f
+        if not (np.isfinite(r2) and r2 > 0):
+            return None, None
+        done = abs(ncx - cx) + abs(ncy - cy) + abs(np.sqrt(r2) - r) < 0.01
+        cx, cy, r = float(ncx), float(ncy), float(np.sqrt(r2))
+        if done:
+            break
+    return (cx, cy, r), wts

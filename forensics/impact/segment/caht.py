@@ -3,33 +3,35 @@
 After USIT's CAHT (C. Rathgeb, A. Uhl, P. Wild, *Iris Recognition: From Segmentation to Template Security*,
 Springer 2012, and USIT's ``caht``):
 
-1. **Reflections** are found as small spots much brighter than their surroundings and filled from around them
-   (:func:`~forensics.impact.segment.common.reflection_mask`).
-2. **Pupil.**  The image's luminance is adjusted so that 2 % of the pixels are black and 4 % white; pixels
-   below 28/255 after the adjustment are dark (CAHT's saturating 3×3 sums).  Where the dark region is thickest
-   (maxima of its distance transform, which a thin eyelash hanging off the pupil does not move) are the
-   candidate pupils; the thickness bounds the radius, as CAHT's longest dark runs do.  Around each, a circular
-   Hough transform (``skimage.transform.hough_circle``) on Canny edges whose gradient points away from the
-   candidate, then a local vote at full resolution (:func:`~forensics.impact.segment.edges.refine_circle`);
-   the candidate with the best edge support wins.
+1. **Reflections** — small near-saturated spots much brighter than their surroundings — are filled from around
+   them (:func:`~forensics.impact.segment.common.reflection_mask`).
+2. **Pupil.**  The luminance is adjusted so that 2 % of the pixels are black and 4 % white; pixels below 28/255
+   after the adjustment are dark (CAHT's saturating 3×3 sums), the dark map is opened (lashes) and its holes
+   filled.  Where the dark region is thickest (maxima of its distance transform, at least half as thick as the
+   thickest: a lash or shadow hanging off the pupil does not move them) are the candidate pupils, and the
+   thickness bounds the radius, as CAHT's longest dark runs do.  Around each, a circular Hough transform
+   (``skimage.transform.hough_circle``) of the dark map's rim (CAHT's Canny on the processed image); the circle
+   is then fitted to the steepest rise on rays all round except the top 60° (lids and lashes), with Tukey's
+   biweight (:func:`~forensics.impact.segment.boundary.fit_rays`).  The candidate whose rays agree best wins.
 3. **Limbus.**  The pupil is blacked out to 1.5 pupil radii with the mean of the ring around it; the
    luminance is adjusted so that the area of that disc is black and 1 % white, and clipped at mid-grey (so
-   that skin, sclera and highlights are one flat level and only the darker iris keeps an edge); Canny on the
-   horizontal gradient only (near-vertical edges: the lids run horizontally) with the iris's polarity (darker
-   towards the pupil); edges above the pupil weighted down quadratically to zero at about two pupil radii
-   (CAHT's "dimming above the horizon").  A weighted circular Hough transform then votes for centres within
-   1.3 pupil radii of the pupil's and radii of 1.5–8 pupil radii (CAHT's ranges), each normalised by the length
-   of the circle's lateral arcs inside the image, with a Gaussian preference for centres near the pupil's
-   (σ = 0.1 iris radius: the pupil is decentred by at most about 0.5 mm in a 6 mm iris radius).  The best
-   few circles are refined at full resolution by Daugman's integro-differential operator on the lateral and
-   lower arcs, with the median over rays of the radial derivative (robust to lashes and lids crossing some
-   rays); the best refined circle wins.
-4. **Checks** (:func:`~forensics.impact.segment.common.plausibility`): radius ratio, pupil inside the iris,
-   iris inside the image, edge support of each boundary.  A failed check sets ``ok = False`` with the reason.
+   that skin, sclera and highlights are one flat level and only the darker iris keeps an edge).  On that image,
+   at half resolution, Canny edges that are near-vertical (the lids run horizontally: CAHT uses the horizontal
+   gradient only) and have the iris's polarity (darker towards the pupil) vote in a weighted circular Hough
+   transform, edges above the pupil weighted down quadratically to zero at about two pupil radii (CAHT's
+   "dimming above the horizon"); centres within 1.3 pupil radii of the pupil's and radii of 1.5–8 pupil radii
+   (CAHT's ranges); each circle's votes normalised by the length of its lateral arcs inside the image, with a
+   Gaussian preference for centres near the pupil's (σ = 0.1 iris radius).  The four best distinct circles are
+   each refined at full resolution by :func:`~forensics.impact.segment.boundary.polar_fit` on the lateral arcs
+   (±60°) and the bottom (250–290°); the refined circle with the largest iris-to-sclera step
+   (:func:`~forensics.impact.segment.boundary.band_contrast`) times ray agreement wins.
+4. **Checks**: radius ratio, pupil inside the iris, iris inside the image
+   (:func:`~forensics.impact.segment.common.plausibility`), pupil darker than iris darker than sclera
+   (:func:`~forensics.impact.segment.common.contrast_check`), ray agreement of each boundary at least
+   ``min_support``.  A failed check sets ``ok = False`` with the reason.
 5. **Eyelids** as parabolas (:func:`~forensics.impact.segment.edges.find_eyelid`).
 
 Sizes are relative: to the image's shorter side before the pupil is known, to the pupil radius after.
-About 40 ms per 320×240 image.
 """
 from __future__ import annotations
 
@@ -38,9 +40,11 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from forensics.impact.segment.boundary import band_contrast, fit_rays, polar_fit
 from forensics.impact.segment.common import (
     Circle,
     Segmentation,
+    contrast_check,
     fill_masked,
     grey,
     image_size,
@@ -48,8 +52,7 @@ from forensics.impact.segment.common import (
     reflection_mask,
     stretch,
 )
-from forensics.impact.segment.boundary import band_contrast, polar_fit
-from forensics.impact.segment.edges import edges_and_gradient, find_eyelid, refine_circle
+from forensics.impact.segment.edges import edges_and_gradient, find_eyelid
 
 #: CAHT's darkness threshold after the 2 %/4 % luminance adjustment (a 3×3 sum saturating at 255 stays below
 #: 255 only if the mean is below 28).
@@ -113,7 +116,7 @@ def segment_caht(
     if iris is None:
         return Segmentation(pupil=pupil, iris=guess.iris, ok=False, quality=0.0, reason="no limbus edges",
                             method="caht")
-    reasons = [plausibility(pupil, iris, img.shape)]
+    reasons = [plausibility(pupil, iris, img.shape), contrast_check(filled, pupil, iris)]
     if p_support < min_support:
         reasons.append(f"weak pupil boundary ({p_support:.2f})")
     if l_support < min_support:
@@ -170,7 +173,7 @@ def find_pupil(img: np.ndarray, min_pupil: float = 0.025, n_candidates: int = 4)
         coarse = _pupil_hough(rim, float(px), float(py), float(depth[py, px]))
         if coarse is None:
             continue
-        circle, _strength, support = fit_boundary(smooth, coarse, arcs=PUPIL_ARCS, step=3.0, window=0.15)
+        circle, _strength, support = fit_rays(smooth, coarse, PUPIL_ARCS, step=3.0, window=0.15)
         if support > best[0]:
             best = (support, circle)
     return best[1], max(best[0], 0.0)
@@ -311,152 +314,9 @@ def _lateral_votes(ex, ey, weight, cx, cy, radii, shape) -> np.ndarray:
     return cover
 
 
-def refine_boundary(smooth: np.ndarray, circle: Circle, window: int = 3, radius_window: float | None = None,
-                    arcs=LIMBUS_ARCS, step: float = 3.0) -> tuple[Circle, float, float]:
-    """Daugman's integro-differential operator around ``circle``: ``(circle, strength, support)``.
-
-    For centres within ``±window`` px (1-px, then 0.5-px steps around the best) and radii within
-    ``±radius_window`` (default 8 % of the radius, at least 3 px), the radial derivative of ``smooth`` is taken
-    on rays every ``step`` degrees over ``arcs`` (degrees counter-clockwise from +x, y up on screen); its median
-    over the rays that stay inside the image is the strength of each radius (robust to the lashes and lids that
-    cross some rays).  ``support`` is the fraction of those rays whose steepest rise within ±4 px of the chosen
-    circle lies within 1.5 px of it.
-    """
-    x0, y0, r0 = circle
-    rw = radius_window if radius_window is not None else max(3.0, 0.08 * r0)
-    ang = np.deg2rad(np.concatenate([np.arange(a, b + 1e-9, step) for a, b in arcs]))
-    cos, sin = np.cos(ang), np.sin(ang)
-    cx, cy = x0, y0
-    r, strength = r0, -np.inf
-    for offsets in (np.arange(-window, window + 1, 1.0), np.arange(-1.0, 1.01, 0.5)):
-        ox, oy = np.meshgrid(offsets, offsets)
-        xs, ys = cx + ox.ravel(), cy + oy.ravel()
-        radii, strengths = _radial_strength(smooth, xs, ys, r0 - rw, r0 + rw, cos, sin)
-        k = int(np.argmax(strengths))
-        if strengths[k] > strength or not np.isfinite(strength):
-            cx, cy, r, strength = float(xs[k]), float(ys[k]), float(radii[k]), float(strengths[k])
-    support = _ray_support(smooth, cx, cy, r, cos, sin)
-    return (cx, cy, r), strength, support
-
-
-def _profiles(smooth, xs, ys, r_lo, r_hi, cos, sin, dr=0.5):
-    """Radial profiles ``(centres, rays, radii)`` from centres ``(xs, ys)``, and which rays stay inside."""
-    rs = np.arange(r_lo, r_hi + 1e-9, dr)
-    px = xs[:, None, None] + rs[None, None, :] * cos[None, :, None]
-    py = ys[:, None, None] - rs[None, None, :] * sin[None, :, None]
-    h, w = smooth.shape
-    inside = ((px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)).all(axis=2)
-    prof = ndimage.map_coordinates(smooth, [py.ravel(), px.ravel()], order=1, mode="nearest").reshape(px.shape)
-    return rs, prof, inside
-
-
-def _radial_strength(smooth, xs, ys, r_lo, r_hi, cos, sin) -> tuple[np.ndarray, np.ndarray]:
-    """For each centre: the radius in ``[r_lo, r_hi]`` with the largest median radial derivative, and that median.
-
-    Rays leaving the image do not count; a centre with fewer than 5 rays inside gets ``-inf``.
-    """
-    rs, prof, inside = _profiles(smooth, np.asarray(xs, float), np.asarray(ys, float), r_lo - 0.5, r_hi + 0.5,
-                                 cos, sin)
-    deriv = (prof[:, :, 2:] - prof[:, :, :-2]) / (rs[2] - rs[0])     # central differences
-    deriv = np.where(inside[:, :, None], deriv, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(deriv, axis=1)                          # (centres, radii)
-    med = np.where(inside.sum(axis=1)[:, None] >= 5, med, -np.inf)
-    med = np.nan_to_num(med, nan=-np.inf)
-    k = np.argmax(med, axis=1)
-    return rs[1:-1][k], med[np.arange(med.shape[0]), k]
-
-
-def _ray_support(smooth, cx, cy, r, cos, sin) -> float:
-    rs, prof, inside = _profiles(smooth, np.array([cx]), np.array([cy]), r - 4.0, r + 4.0, cos, sin)
-    prof, inside = prof[0], inside[0]
-    if not inside.any():
-        return 0.0
-    deriv = prof[inside, 2:] - prof[inside, :-2]
-    peak = rs[1:-1][np.argmax(deriv, axis=1)]
-    return float(np.mean((np.abs(peak - r) <= 1.5) & (deriv.max(axis=1) > 0)))
-
-
 def _block_mean(img: np.ndarray, k: int) -> np.ndarray:
     """Mean over ``k × k`` blocks (the last partial rows/columns are dropped)."""
     if k == 1:
         return img
     h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
     return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3))
-
-
-def fit_boundary(smooth: np.ndarray, circle: Circle, arcs=LIMBUS_ARCS, step: float = 2.0, window: float = 0.08,
-                 rounds: int = 3) -> tuple[Circle, float, float]:
-    """Edge points on rays and a robust circle fit around ``circle``: ``(circle, strength, support)``.
-
-    On rays every ``step`` degrees over ``arcs`` from the current centre, the steepest rise of ``smooth``
-    within ``±window`` × the radius of the current circle is the ray's edge point; a circle is fitted to the
-    points by least squares with Tukey's biweight (points more than 4.7 × 1.5 px off get no weight: lashes
-    and lids crossing a ray), and the rays are cast again from the new centre with half the window.
-    ``strength`` is the median rise of the inlier points (per pixel), ``support`` the fraction of the rays
-    inside the image whose point is an inlier.
-    """
-    cx, cy, r = circle
-    ang = np.deg2rad(np.concatenate([np.arange(a, b + 1e-9, step) for a, b in arcs]))
-    cos, sin = np.cos(ang), np.sin(ang)
-    strength, support = 0.0, 0.0
-    half = max(3.0, window * r)
-    for _ in range(rounds):
-        rs, prof, inside = _profiles(smooth, np.array([cx]), np.array([cy]), r - half - 1.0, r + half + 1.0, cos, sin)
-        prof, inside = prof[0], inside[0]
-        if inside.sum() < 6:
-            return (cx, cy, r), 0.0, 0.0
-        deriv = (prof[inside, 2:] - prof[inside, :-2]) / (rs[2] - rs[0])
-        k = np.argmax(deriv, axis=1)
-        rise = deriv[np.arange(k.size), k]
-        rad = rs[1:-1][k]
-        px = cx + rad * cos[inside]
-        py = cy - rad * sin[inside]
-        valid = rise > 0
-        if valid.sum() < 6:
-            return (cx, cy, r), 0.0, 0.0
-        fit, weights = _robust_circle(px[valid], py[valid], (cx, cy, r))
-        if fit is None:
-            break
-        cx, cy, r = fit
-        inlier = weights > 0
-        strength = float(np.median(rise[valid][inlier])) if inlier.any() else 0.0
-        support = float(inlier.sum() / inside.sum())
-        half = max(2.0, half / 2)
-    return (float(cx), float(cy), float(r)), strength, support
-
-
-def _robust_circle(x: np.ndarray, y: np.ndarray, start: Circle, scale: float = 0.6, iters: int = 20):
-    """Circle through points by iteratively reweighted least squares with Tukey's biweight (c = 4.685 σ).
-
-    Linearised (Kåsa) fit ``x² + y² + D x + E y + F = 0`` weighted per point; returns ``(circle, weights)`` or
-    ``(None, None)`` when the points do not determine a circle.
-    """
-    cx, cy, r = start
-    wts = np.ones_like(x)
-    c = 4.685 * scale
-    for _ in range(iters):
-        res = np.hypot(x - cx, y - cy) - r
-        u = res / c
-        wts = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
-        if (wts > 0).sum() < 5:
-            return None, None
-        a = np.column_stack([x, y, np.ones_like(x)]) * wts[:, None]
-        b = -(x * x + y * y) * wts
-        try:
-            d, e, f = np.linalg.lstsq(a, b, rcond=None)[0]
-        except np.linalg.LinAlgError:
-            return None, None
-        ncx, ncy = -d / 2, -e / 2
-        r2 = ncx * ncx + ncy * ncy - f
-        if not (np.isfinite(r2) and r2 > 0):
-            return None, None
-        done = abs(ncx - cx) + abs(ncy - cy) + abs(np.sqrt(r2) - r) < 0.01
-        cx, cy, r = float(ncx), float(ncy), float(np.sqrt(r2))
-        if done:
-            break
-    return (cx, cy, r), wts

@@ -229,6 +229,59 @@ def plausibility(pupil: Circle, iris: Circle, shape: tuple[int, int],
     return "; ".join(reasons)
 
 
+def contrast_check(img: np.ndarray, pupil: Circle, iris: Circle, margin: float = 0.05) -> str:
+    """Why the grey levels cannot be a pupil inside an iris inside a sclera (empty string when they can).
+
+    In a near-infrared eye image the pupil is darker than the iris, and the iris darker than the sclera beside
+    it.  The medians of the pupil disc (0.8 × its radius), of the iris ring (from 1.1 pupil radii to 0.9 iris
+    radii, on the lateral thirds, away from the lids) and of the ring just outside the limbus (1.05–1.2 iris
+    radii, lateral thirds) must increase in that order by at least ``margin`` × the image's robust grey range
+    (2nd to 98th percentile).  A closed eye, skin or a blank frame fails.
+    """
+    h, w = img.shape
+    lo, hi = np.quantile(img, [0.02, 0.98])
+    step = margin * max(float(hi - lo), 1e-6)
+    xp, yp, rp = pupil
+    xi, yi, ri = iris
+    yy, xx = np.mgrid[0:h, 0:w]
+    dp = np.hypot(xx - xp, yy - yp)
+    di = np.hypot(xx - xi, yy - yi)
+    lateral = np.abs(xx - xi) >= 0.5 * np.maximum(di, 1e-9)
+
+    def median(region: np.ndarray) -> float | None:
+        return float(np.median(img[region])) if region.sum() >= 10 else None
+
+    levels = [median(dp <= 0.8 * rp), median((dp >= 1.1 * rp) & (di <= 0.9 * ri) & lateral),
+              median((di >= 1.05 * ri) & (di <= 1.2 * ri) & lateral)]
+    names = ("pupil", "iris", "sclera")
+    for k in range(2):
+        if levels[k] is None or levels[k + 1] is None:
+            continue
+        if levels[k] > levels[k + 1] - step:
+            return f"the {names[k]} is not darker than the {names[k + 1]}"
+    return ""
+
+
+def ray_to_ellipse(origin: tuple[float, float], ellipse: Ellipse, theta: np.ndarray) -> np.ndarray:
+    """Distance along each ray from ``origin`` to an ellipse ``(x, y, a, b, phi)`` (the positive root).
+
+    In the ellipse's frame (axes along ``phi``) the ray ``O + R·u`` meets ``(X/a)² + (Y/b)² = 1`` where a
+    quadratic in ``R`` vanishes; its larger root is taken, clipped at 0 when the origin lies outside.
+    """
+    xc, yc, a, b, phi = ellipse
+    # Screen y points down; the ellipse's angle is counter-clockwise on screen, so work in y-up coordinates.
+    px, py = origin[0] - xc, -(origin[1] - yc)
+    ux, uy = np.cos(theta), np.sin(theta)
+    c, s = np.cos(phi), np.sin(phi)
+    pX, pY = px * c + py * s, -px * s + py * c
+    uX, uY = ux * c + uy * s, -ux * s + uy * c
+    qa = (uX / a) ** 2 + (uY / b) ** 2
+    qb = 2 * (pX * uX / a ** 2 + pY * uY / b ** 2)
+    qc = (pX / a) ** 2 + (pY / b) ** 2 - 1
+    disc = np.maximum(qb * qb - 4 * qa * qc, 0.0)
+    return np.maximum((-qb + np.sqrt(disc)) / (2 * qa), 0.0)
+
+
 def disc_fraction_inside(circle: Circle, shape: tuple[int, int], n: int = 32) -> float:
     """Fraction of the disc's area inside the image (sampled on an ``n × n`` grid over its bounding box)."""
     x, y, r = circle

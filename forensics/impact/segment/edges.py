@@ -1,8 +1,7 @@
-"""Edge pixels, the local circle refinement and the eyelid margins, shared by the segmentations.
+"""Edge pixels and the eyelid margins, shared by the segmentations.
 
-:func:`edges_and_gradient` gives Canny edge pixels and the smoothed gradient at them; :func:`refine_circle`
-is a local vote at full resolution that counts only edge pixels whose gradient points outwards (dark inside,
-bright outside); :func:`find_eyelid` fits an eyelid margin as a parabola with a small Hough transform.
+:func:`edges_and_gradient` gives Canny edge pixels and the smoothed gradient at them; :func:`find_eyelid` fits
+an eyelid margin as a parabola with a small Hough transform.
 """
 from __future__ import annotations
 
@@ -29,53 +28,6 @@ def edges_and_gradient(img: np.ndarray, sigma: float, quantiles: tuple[float, fl
     gy = ndimage.sobel(smooth, axis=0)[ey, ex]
     gx = ndimage.sobel(smooth, axis=1)[ey, ex]
     return ey, ex, gy, gx
-
-
-
-def refine_circle(ey, ex, gy, gx, centre: tuple[float, float], radius: float, window: int, radius_window: int,
-            sides_only: bool, cos_min: float = 0.7) -> tuple[float, float, float, float]:
-    """Local circular vote at full resolution around a coarse circle.
-
-    Every integer centre within ``±window`` px and radius within ``±radius_window`` px is scored by the number
-    of edge pixels at that (rounded) distance whose gradient points outwards within ``acos(cos_min)`` of the
-    radial direction, divided by the length of the perimeter considered.  ``sides_only`` counts only the
-    left and right thirds of the circle (|cos θ| ≥ 0.5), as Masek weights vertical edges for the limbus so that
-    eyelids do not vote.  Returns ``(x, y, r, support)``.
-    """
-    cx0, cy0 = round(centre[0]), round(centre[1])
-    r0 = round(radius)
-    rmin, rmax = max(r0 - radius_window, 2), r0 + radius_window
-    if ey.size == 0:
-        return float(cx0), float(cy0), float(r0), 0.0
-    # Only edges in the band that can matter (cheap pre-selection).
-    d0 = np.hypot(ex - cx0, ey - cy0)
-    keep = np.abs(d0 - r0) <= radius_window + window * 1.5 + 1
-    ex, ey, gx, gy = ex[keep], ey[keep], gx[keep], gy[keep]
-    offs = np.arange(-window, window + 1)
-    cxs = (cx0 + offs)[:, None].repeat(offs.size, 1).ravel()
-    cys = (cy0 + offs)[None, :].repeat(offs.size, 0).ravel()
-    nr = rmax - rmin + 1
-    if ex.size == 0:
-        return float(cx0), float(cy0), float(r0), 0.0
-    dx = ex[None, :] - cxs[:, None]
-    dy = ey[None, :] - cys[:, None]
-    d = np.hypot(dx, dy)
-    gnorm = np.hypot(gx, gy)[None, :]
-    good = (dx * gx[None, :] + dy * gy[None, :]) >= cos_min * gnorm * np.maximum(d, 1e-9)
-    if sides_only:
-        good &= np.abs(dx) >= 0.5 * d
-    ri = np.rint(d).astype(np.int64) - rmin
-    good &= (ri >= 0) & (ri < nr)
-    idx = (np.arange(cxs.size)[:, None] * nr + ri)[good]
-    counts = np.bincount(idx, minlength=cxs.size * nr).reshape(cxs.size, nr).astype(float)
-    # A 1-px-wide ring of radius r holds about 2πr pixels; canny lines are thinner, so support rarely reaches 1.
-    perim = 2 * np.pi * np.arange(rmin, rmax + 1) * (2 / 3 if sides_only else 1.0)
-    support = counts / perim[None, :]
-    # Ties (common with integer votes) go to the candidate nearest the coarse estimate.
-    penalty = (np.abs(cxs - cx0) + np.abs(cys - cy0))[:, None] * 1e-6 + np.abs(np.arange(rmin, rmax + 1) - r0) * 1e-6
-    k = int(np.argmax(support - penalty))
-    c, r = divmod(k, nr)
-    return float(cxs[c]), float(cys[c]), float(rmin + r), float(support[c, r])
 
 
 

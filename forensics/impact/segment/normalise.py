@@ -17,7 +17,7 @@ import warnings
 import numpy as np
 from scipy import ndimage
 
-from forensics.impact.segment.common import Ellipse, Segmentation, as_float
+from forensics.impact.segment.common import Segmentation, as_float, ray_to_ellipse
 
 
 def _ray_to_circle(origin: tuple[float, float], circle, theta: np.ndarray) -> np.ndarray:
@@ -31,36 +31,16 @@ def _ray_to_circle(origin: tuple[float, float], circle, theta: np.ndarray) -> np
     return -du + np.sqrt(np.maximum(du * du - (ox * ox + oy * oy) + circle[2] ** 2, 0.0))
 
 
-def _ray_to_ellipse(origin: tuple[float, float], ellipse: Ellipse, theta: np.ndarray) -> np.ndarray:
-    """Distance along each ray from ``origin`` to an ellipse ``(x, y, a, b, phi)`` (the positive root).
-
-    In the ellipse's frame (axes along ``phi``) the ray ``O + R·u`` meets ``(X/a)² + (Y/b)² = 1`` where a
-    quadratic in ``R`` vanishes; its larger root is taken, clipped at 0 when the origin lies outside.
-    """
-    xc, yc, a, b, phi = ellipse
-    # Screen y points down; the ellipse's angle is counter-clockwise on screen, so work in y-up coordinates.
-    px, py = origin[0] - xc, -(origin[1] - yc)
-    ux, uy = np.cos(theta), np.sin(theta)
-    c, s = np.cos(phi), np.sin(phi)
-    pX, pY = px * c + py * s, -px * s + py * c
-    uX, uY = ux * c + uy * s, -ux * s + uy * c
-    qa = (uX / a) ** 2 + (uY / b) ** 2
-    qb = 2 * (pX * uX / a ** 2 + pY * uY / b ** 2)
-    qc = (pX / a) ** 2 + (pY / b) ** 2 - 1
-    disc = np.maximum(qb * qb - 4 * qa * qc, 0.0)
-    return np.maximum((-qb + np.sqrt(disc)) / (2 * qa), 0.0)
-
-
 def boundary_radii(seg: Segmentation, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distances from the pupil centre to the pupil boundary and to the limbus along each angle."""
     origin = (seg.pupil[0], seg.pupil[1])
     if seg.pupil_ellipse is not None:
         origin = (seg.pupil_ellipse[0], seg.pupil_ellipse[1])
-        inner = _ray_to_ellipse(origin, seg.pupil_ellipse, theta)
+        inner = ray_to_ellipse(origin, seg.pupil_ellipse, theta)
     else:
         inner = np.full(theta.shape, float(seg.pupil[2]))
     if seg.iris_ellipse is not None:
-        outer = _ray_to_ellipse(origin, seg.iris_ellipse, theta)
+        outer = ray_to_ellipse(origin, seg.iris_ellipse, theta)
     else:
         outer = _ray_to_circle(origin, seg.iris, theta)
     return inner, np.maximum(outer, inner)
