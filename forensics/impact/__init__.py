@@ -24,7 +24,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "template_failure",
         ],
         "experiment": [
-            "PROTOCOLS", "ImpactResult", "MatcherTrend", "UnitResult", "run_impact",
+            "PROTOCOLS", "ImpactResult", "SensorSpec", "Spread", "Trend", "UnitResult", "parse_sensors", "run_impact",
         ],
     },
 )
