@@ -18,6 +18,10 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "BUILTIN_MATCHERS", "ExternalMatcher", "IrisCode", "KoMatcher", "MasekMatcher", "Matcher",
             "compare_all", "load_matcher", "load_matchers",
         ],
+        "qsw": ["QswMatcher"],
+        "dct": ["DctMatcher", "DctTemplate"],
+        "cr": ["CrMatcher"],
+        "cb": ["CbMatcher", "CbTemplate"],
         "experiment": [
             "PROTOCOLS", "ImpactResult", "MatcherTrend", "UnitResult", "run_impact",
         ],
