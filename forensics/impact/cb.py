@@ -41,7 +41,8 @@ possible); ``max_shift`` > 0 takes the best score over circular shifts of whole 
 published).
 
 Speed: the comparison is vectorised over blocks of pairs with one byte per cell; the context of every cell
-is read from padded arrays (views, no copies).
+is read from padded arrays (views, no copies), and the cell scores are bit shifts summed as integers, so one
+pair and a block of pairs give exactly the same value.
 """
 from __future__ import annotations
 
@@ -65,13 +66,9 @@ DIRECT: tuple[tuple[int, int], ...] = ((-1, 0), (0, -1), (0, 1), (1, 0))
 _PAD = 2
 #: USIT's normalisation exponent per valid cell: 2 + (context cells + the cell itself).
 _NORM = 2 + len(CONTEXT) + 1
-# Scores by index: a match with context count c is at index c + 1 (0 = not a match); a mismatch with
-# penalty p at index p + 1.
-_POSITIVE = np.array([0] + [2 ** (c + 2) for c in range(2 * len(CONTEXT) + 1)], np.int64)
-_NEGATIVE = np.array([0] + [2 ** (p + 1) for p in range(3 * len(DIRECT) + 1)], np.int64)
 #: Similarity of a pair with too few cells valid in both codes: the lowest score any pair can have (every
 #: cell a mismatch with the largest penalty, −4), so an uncomparable pair never passes for a match.
-UNCOMPARABLE = float(-_NEGATIVE[-1] / 2.0 ** _NORM)
+UNCOMPARABLE = -(2.0 ** (1 + 3 * len(DIRECT))) / 2.0 ** _NORM
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,44 +105,74 @@ def _padded(x: np.ndarray) -> np.ndarray:
     return np.concatenate([zeros, wrapped, zeros], axis=-2)
 
 
-def _at(padded: np.ndarray, dr: int, dc: int, shape: tuple[int, int]) -> np.ndarray:
+def _at(padded: np.ndarray, dr: int, dc: int) -> np.ndarray:
     """The neighbour ``(dr, dc)`` of every cell, read from a :func:`_padded` array (a view)."""
-    r, c = shape
+    r, c = padded.shape[-2] - 2 * _PAD, padded.shape[-1] - 2 * _PAD
     return padded[..., _PAD + dr:_PAD + dr + r, _PAD + dc:_PAD + dc + c]
+
+
+@dataclass(frozen=True)
+class _Stack:
+    """Templates prepared for comparison, all ``(n, rows + 4, columns + 4)`` uint8 (:func:`_padded`): the two
+    thermometer bits of the level (``level ≥ 1``, ``level ≥ 2``) and the validity (0 beyond the radial edges)."""
+
+    t1: np.ndarray
+    t2: np.ndarray
+    valid: np.ndarray
+
+    @classmethod
+    def of(cls, levels: np.ndarray, valid: np.ndarray) -> _Stack:
+        return cls(_padded((levels >= 1).view(np.uint8)), _padded((levels >= 2).view(np.uint8)),
+                   _padded(np.asarray(valid, bool).view(np.uint8)))
+
+    def rolled(self, s: int) -> _Stack:
+        """The templates rotated by ``s`` cells along the angle (padding rebuilt)."""
+        if s == 0:
+            return self
+        return _Stack(*(_padded(np.roll(_at(x, 0, 0), s, axis=-1)) for x in (self.t1, self.t2, self.valid)))
+
+    def take(self, i0: int, i1: int) -> _Stack:
+        return _Stack(self.t1[i0:i1], self.t2[i0:i1], self.valid[i0:i1])
 
 
 def _reference_context(levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For reference codes ``(n, rows, columns)``: per context cell 1 + [its level differs] (uint8, (8, n, r, c)),
     and per direct neighbour [its level is the same] (uint8, (4, n, r, c))."""
-    shape = levels.shape[-2:]
     p = _padded(levels)
-    grow = np.stack([1 + (_at(p, dr, dc, shape) != levels) for dr, dc in CONTEXT]).astype(np.uint8)
-    same = np.stack([_at(p, dr, dc, shape) == levels for dr, dc in DIRECT]).astype(np.uint8)
+    grow = np.stack([1 + (_at(p, dr, dc) != levels) for dr, dc in CONTEXT]).astype(np.uint8)
+    same = np.stack([_at(p, dr, dc) == levels for dr, dc in DIRECT]).astype(np.uint8)
     return grow, same
 
 
-def _scores(la: np.ndarray, va: np.ndarray, grow: np.ndarray, same: np.ndarray,
-            lb: np.ndarray, vb: np.ndarray, min_cells: int) -> np.ndarray:
-    """Context-based similarities of references ``(na, r, c)`` against probes ``(nb, r, c)``: ``(na, nb)``."""
-    shape = la.shape[-2:]
-    a, b = la[:, None], lb[None, :]
-    valid = va[:, None] & vb[None, :]
-    match = (valid & (a == b)).view(np.uint8)
-    mismatch = (valid & (a != b)).view(np.uint8)
-    pm, px = _padded(match), _padded(mismatch)
-    # Level difference where both mismatch (thermometer levels: |a − b| ∈ {1, 2}).
-    diff = _padded(mismatch * np.where(a > b, a - b, b - a))
-    context = np.zeros(match.shape, np.uint8)
+def _scores(a: _Stack, grow: np.ndarray, same: np.ndarray, b: _Stack, min_cells: int) -> np.ndarray:
+    """Context-based similarities of references ``a`` (with their :func:`_reference_context`) against probes ``b``.
+
+    Works on the padded arrays, so every neighbour is a view; the per-cell scores ``2^(2 + c)`` and
+    ``2^(1 + p)`` are bit shifts of the match and mismatch indicators, summed exactly as integers.
+    """
+    # Level difference |a − b| = number of differing thermometer bits.
+    diff = (a.t1[:, None] ^ b.t1[None, :]) + (a.t2[:, None] ^ b.t2[None, :])
+    valid = a.valid[:, None] & b.valid[None, :]
+    same_level = diff == 0
+    match = (same_level & valid.view(bool)).view(np.uint8)
+    mismatch = (~same_level & valid.view(bool)).view(np.uint8)
+    diff *= valid                                       # level difference where both are valid (0 where equal)
+    centre_match, centre_mismatch = _at(match, 0, 0), _at(mismatch, 0, 0)
+    term = np.empty(centre_match.shape, np.uint8)
+    context = np.full(centre_match.shape, 2, np.uint8)  # the exponent 2 + c
     for k, (dr, dc) in enumerate(CONTEXT):
-        context += _at(pm, dr, dc, shape) * grow[k][:, None]
-    penalty = np.zeros(match.shape, np.uint8)
+        np.multiply(_at(match, dr, dc), grow[k][:, None], out=term)
+        context += term
+    penalty = np.ones(centre_match.shape, np.uint8)     # the exponent 1 + p
     for k, (dr, dc) in enumerate(DIRECT):
-        penalty += _at(px, dr, dc, shape) * same[k][:, None] + _at(diff, dr, dc, shape)
-    positive = _POSITIVE[match * (context + 1)].sum(axis=(-2, -1))
-    negative = _NEGATIVE[mismatch * (penalty + 1)].sum(axis=(-2, -1))
-    n_valid = valid.sum(axis=(-2, -1))
+        np.multiply(_at(mismatch, dr, dc), same[k][:, None], out=term)
+        penalty += term
+        penalty += _at(diff, dr, dc)
+    positive = np.left_shift(centre_match, context, dtype=np.uint32).sum(axis=(-2, -1), dtype=np.uint64)
+    negative = np.left_shift(centre_mismatch, penalty, dtype=np.uint32).sum(axis=(-2, -1), dtype=np.uint64)
+    n_valid = _at(valid, 0, 0).sum(axis=(-2, -1), dtype=np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        score = (positive - negative).astype(np.float64) / (n_valid.astype(np.float64) * 2.0 ** _NORM)
+        score = (positive.astype(np.float64) - negative.astype(np.float64)) / (n_valid * 2.0 ** _NORM)
     return np.where(n_valid >= max(min_cells, 1), score, UNCOMPARABLE)
 
 
@@ -228,15 +255,16 @@ class CbMatcher:
             raise InputError(f"cb templates of different layouts: {la.shape[1:]} and {lb.shape[1:]} cells")
         min_cells = math.ceil(self.min_valid * la[0].size)
         grow, same = _reference_context(la)
-        chunk_b = max(1, min(len(lb), self.block_bytes // (24 * la[0].size)))
-        chunk_a = max(1, min(len(la), self.block_bytes // (24 * la[0].size * chunk_b)))
+        ref, probes = _Stack.of(la, va), _Stack.of(lb, vb)
+        per_pair = 16 * ref.t1[0].size                 # bytes of the block's working arrays per pair
+        chunk_b = max(1, min(len(lb), self.block_bytes // per_pair))
+        chunk_a = max(1, min(len(la), self.block_bytes // (per_pair * chunk_b)))
         for s in range(-self.max_shift, self.max_shift + 1):
-            lbs, vbs = np.roll(lb, s, axis=2), np.roll(vb, s, axis=2)
+            shifted = probes.rolled(s)
             for j0 in range(0, len(lb), chunk_b):
                 j1 = min(j0 + chunk_b, len(lb))
                 for i0 in range(0, len(la), chunk_a):
                     i1 = min(i0 + chunk_a, len(la))
-                    block = _scores(la[i0:i1], va[i0:i1], grow[:, i0:i1], same[:, i0:i1], lbs[j0:j1], vbs[j0:j1],
-                                    min_cells)
+                    block = _scores(ref.take(i0, i1), grow[:, i0:i1], same[:, i0:i1], shifted.take(j0, j1), min_cells)
                     np.maximum(out[i0:i1, j0:j1], block, out=out[i0:i1, j0:j1])
         return out

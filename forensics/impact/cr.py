@@ -13,8 +13,8 @@ The published method, as implemented here:
    to the next column, into the same row or one row up or down, whichever holds the brightest pixel — the
    *light* path — or the darkest — the *dark* path; it leaves its row only for a neighbour strictly brighter
    (darker) than both other candidates.  The paths follow local intensity variations (crypts, furrows).
-3. Each path is smoothed: runs of one and then two samples that leave and return to the same row are
-   flattened (USIT's two passes, sequential along the angle).
+3. Each path is smoothed (USIT's two passes, sequential along the angle): a single sample that leaves and
+   returns to a row is flattened, then any excursion of up to three samples between two equal samples.
 4. A path's row (0, 1, 2) is coded with two bits ``00``, ``01``, ``11``, so the Hamming distance between
    codes counts rows of difference.  Templates are compared by the masked fractional Hamming distance
    minimised over circular shifts (``max_shift`` = 17 columns = ±12°, this project's range for 512-column

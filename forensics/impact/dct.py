@@ -7,7 +7,7 @@ The published method, as implemented here:
 
 1. The normalised iris is divided into overlapping *angular patches*: ``patch`` = 8 radial × 12 angular
    samples, overlapping by half in both directions (steps of 4 rows and 6 columns), slanted by 45° in the
-   normalised image (each row of a patch starts one column further along the angle than the row before —
+   normalised image (each row of a patch, going outwards, starts one column further back along the angle —
    ``slant`` = 1 column per row; USIT's default shear is 2 columns per row, its tables also offer 45°).
    USIT skips the 3 rows nearest the pupil and takes 12 rows of patches (rows 3 … 54 of 64).
 2. Each patch is averaged across its width with a Hanning window into a radial 1-D patch vector, which is

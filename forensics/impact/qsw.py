@@ -62,11 +62,15 @@ def dyadic_wavelet(signals: np.ndarray, scales: tuple[int, ...]) -> np.ndarray:
     """Mallat–Zhong dyadic wavelet transform ``W_{2^s}`` of circular signals along the last axis.
 
     Returns an array of shape ``(len(scales), *signals.shape)``; scale ``s ≥ 1`` is the detail after
-    ``s − 1`` smoothing steps (level ``j`` filters dilated by ``2^j``).
+    ``s − 1`` smoothing steps (level ``j`` filters dilated by ``2^j``).  The filters as published are
+    causal: their cascade delays the signal by ``2^(s−1) − ½`` samples; the delay is undone in the Fourier
+    domain, so that an extremum of ``W`` lies on the sharp variation it marks (the kernel is then
+    antisymmetric about 0 and ``W`` of a symmetric bump is antisymmetric about the bump).
     """
     x = np.asarray(signals, dtype=np.float64)
     n = x.shape[-1]
     spectrum = np.fft.fft(x, axis=-1)
+    freq = np.fft.fftfreq(n)
     out = np.empty((len(scales), *x.shape))
     for k, s in enumerate(scales):
         if s < 1 or 2 ** (s - 1) * 3 >= n:
@@ -74,6 +78,10 @@ def dyadic_wavelet(signals: np.ndarray, scales: tuple[int, ...]) -> np.ndarray:
         response = _transfer(_G_TAPS, n, 2 ** (s - 1))
         for j in range(s - 1):
             response = response * _transfer(_H_TAPS, n, 2 ** j)
+        delay = 2.0 ** (s - 1) - 0.5
+        response = response * np.exp(2j * np.pi * freq * delay)
+        if n % 2 == 0:
+            response[n // 2] = response[n // 2].real  # the Nyquist bin of a real kernel stays real
         out[k] = np.fft.ifft(spectrum * response, axis=-1).real
     return out
 
