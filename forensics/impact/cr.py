@@ -39,8 +39,35 @@ from forensics.impact.texture import TEXTURE_SHAPE, cell_validity, equalise, fil
 __all__ = ["CrMatcher", "pixel_paths", "smooth_paths"]
 
 
+# A map of the rows {0, 1, 2} to themselves is coded as one number m(0) + 3 m(1) + 9 m(2) (0 … 26), so that
+# composing maps and applying them are look-ups in two small tables.
+_APPLY = np.array([[(code // 3 ** s) % 3 for s in range(3)] for code in range(27)], np.uint8)   # [map, row]
+_COMPOSE = np.array([[sum(int(_APPLY[g, _APPLY[f, s]]) * 3 ** s for s in range(3)) for f in range(27)]
+                     for g in range(27)], np.uint8)                                            # [g, f] = g ∘ f
+_COMPOSE_FLAT = _COMPOSE.ravel()
+
+
+def _code(maps: np.ndarray) -> np.ndarray:
+    """``(…, 3)`` row maps → their codes (…)."""
+    return (maps[..., 0] + 3 * maps[..., 1] + 9 * maps[..., 2]).astype(np.uint8)
+
+
+def _run(maps: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Rows ``(paths, steps + 1)`` of a sequence that starts in ``start`` and moves by the coded ``maps``
+    ``(paths, steps)``, evaluated for all steps at once: a prefix scan of compositions (log₂ steps of them)."""
+    prefix = maps.copy()                                    # prefix[:, j]: the map from step 0 to after step j
+    d = 1
+    while d < prefix.shape[1]:
+        prefix[:, d:] = np.take(_COMPOSE_FLAT, 27 * prefix[:, d:].astype(np.intp) + prefix[:, :-d])
+        d *= 2
+    rows = np.empty((maps.shape[0], maps.shape[1] + 1), np.intp)
+    rows[:, 0] = start
+    rows[:, 1:] = _APPLY[prefix, np.asarray(start)[:, None]]
+    return rows
+
+
 def _steps(nxt: np.ndarray) -> np.ndarray:
-    """Transition maps ``(paths, columns, 3)``: the row a path in row ``s`` moves to, from the next column's values.
+    """Coded transition maps ``(paths, columns)``: where a path in each row moves, from the next column's values.
 
     ``nxt`` is ``(paths, 3, columns)``; a path moves up (down) only to a value strictly greater than the same
     row's and the other neighbour's.
@@ -54,7 +81,7 @@ def _steps(nxt: np.ndarray) -> np.ndarray:
         go_up = (up > same) & (up > down)
         go_down = (down > same) & (down > up)
         maps[:, :, s] = s - go_up.astype(np.intp) + go_down.astype(np.intp)
-    return maps
+    return _code(maps)
 
 
 def pixel_paths(values: np.ndarray, start: int = 1) -> np.ndarray:
@@ -62,35 +89,26 @@ def pixel_paths(values: np.ndarray, start: int = 1) -> np.ndarray:
 
     The path starts in row ``start`` at column 0 and moves column by column (see :func:`_steps`).  The
     sequence of moves is a composition of per-column maps of {0, 1, 2}; it is evaluated for all columns at
-    once by a prefix scan (log₂ columns compositions) instead of a loop over columns.
+    once by a prefix scan instead of a loop over columns.
     """
     v = np.asarray(values, dtype=np.float64)
-    n_paths, _, n_cols = v.shape
-    # prefix[:, j] maps the row at column 0 to the row at column j + 1.
-    prefix = _steps(v[:, :, 1:])
-    d = 1
-    while d < n_cols - 1:
-        later, earlier = prefix[:, d:], prefix[:, :-d]
-        prefix = np.concatenate([prefix[:, :d], np.take_along_axis(later, earlier, axis=2)], axis=1)
-        d *= 2
-    rows = np.empty((n_paths, n_cols), np.intp)
-    rows[:, 0] = start
-    rows[:, 1:] = prefix[:, :, start]
-    return rows
+    return _run(_steps(v[:, :, 1:]), np.full(v.shape[0], start))
 
 
 def smooth_paths(rows: np.ndarray) -> np.ndarray:
-    """USIT's smoothing of paths ``(paths, columns)``: isolated one- and two-sample excursions flattened.
+    """USIT's smoothing of paths ``(paths, columns)``: isolated excursions flattened.
 
     First pass, left to right: a sample whose (already smoothed) left neighbour equals its right neighbour
-    takes their value.  Second pass: where the samples two to the left and two to the right agree, the
-    three between them take that value.  Sequential along the angle as in USIT, vectorised over paths.
+    takes their value — a map of the left neighbour's row, so the pass is a prefix scan like the paths.
+    Second pass, left to right: where the (current) sample two to the left equals the one two to the right,
+    the three between them take that value; sequential along the angle as in USIT, vectorised over paths.
     """
     f = np.array(rows, dtype=np.intp, copy=True)
     n = f.shape[1]
-    for i in range(1, n - 1):
-        same = f[:, i - 1] == f[:, i + 1]
-        f[:, i] = np.where(same, f[:, i - 1], f[:, i])
+    if n >= 3:
+        left = np.arange(3)[None, None, :]                   # the candidate row of the left neighbour
+        maps = np.where(left == f[:, 2:, None], left, f[:, 1:-1, None])    # (paths, n − 2, 3)
+        f[:, :-1] = _run(_code(maps), f[:, 0])
     for i in range(2, n - 2):
         same = f[:, i - 2] == f[:, i + 2]
         f[:, i - 1:i + 2] = np.where(same[:, None], f[:, i - 2, None], f[:, i - 1:i + 2])
