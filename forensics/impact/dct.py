@@ -32,11 +32,10 @@ difference are.  USIT's ``dctc`` ignores masks.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
-
-import math
 
 import numpy as np
 from scipy.fft import dct as _dct
