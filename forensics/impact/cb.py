@@ -14,7 +14,8 @@ Feature extraction, as published and as USIT implements it:
    range); a cell takes the level most of its samples have (ties to the darker level).  A level is coded
    with two bits ``00``, ``01``, ``11``, so a cell's code is 2 bits: 4,096 bits in all.
 
-Comparison is the paper's *context-based* matching: a cell counts more when its context agrees.
+Comparison is the *context-based* matching of the paper, as USIT's ``cbc`` implements it: a cell counts more
+when its context agrees.
 
 * A cell valid in both codes and equal in both (a *match*) scores ``2^(2 + c)``, with ``c`` its context
   count: for each of its 8 context cells — the 4 diagonal neighbours and the 4 cells two steps away along
@@ -34,7 +35,9 @@ distance, which turns a negative score into the best possible distance; we retur
 merely not a mismatch (so invalid cells count as agreeing) and skips the context of cells within two rows
 of the texture's edges; we count matches only, treat cells beyond the radial edges as absent and wrap
 around the angle.  USIT's codes carry no mask (its intended mask of bright cells is overwritten by a slip
-in ``cb``); ours mark a cell invalid unless more than half of its samples are usable.
+in ``cb``); ours mark a cell invalid unless more than half of its samples are usable.  USIT's segmenters
+size their equalisation tiles from the eye image (a slip: 40 × 120 samples at 320 × 240); we use ``cr``'s
+64 × 32.
 
 USIT's ``cbc`` does not compensate rotation (the algorithm comes from key generation, where no shifting is
 possible); ``max_shift`` > 0 takes the best score over circular shifts of whole cells (default 0, as
