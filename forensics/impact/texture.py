@@ -38,9 +38,10 @@ def equalise(texture: np.ndarray, mask: np.ndarray, tiles: tuple[int, int] = (2,
     """USIT's texture enhancement: adaptive histogram equalisation on a grid of ``tiles`` (rows, columns).
 
     USIT equalises the 64×512 texture with its own CLAHE at a clip factor of 1, i.e. without clipping
-    (plain adaptive histogram equalisation) on 8 × 2 tiles of 64 × 32 samples (``cr``; the segmenters'
-    ``-e`` option).  ``skimage.exposure.equalize_adapthist`` with ``clip_limit=1`` is the same operation
-    (contextual regions with bilinear interpolation of the tile mappings).  Unusable samples are filled
+    (plain adaptive histogram equalisation), on 8 × 2 tiles of 64 × 32 samples in ``cr`` (its segmenters'
+    ``-e`` option does the same with tiles sized from the eye image).
+    ``skimage.exposure.equalize_adapthist`` with ``clip_limit=1`` is the same operation (contextual regions
+    with bilinear interpolation of the tile mappings).  Unusable samples are filled
     first (:func:`fill_unusable`) so that eyelids and reflections do not take part in the histograms as
     themselves.  Returns float32 in [0, 1]; a flat texture is returned as 0.5 everywhere.
     """
