@@ -23,6 +23,10 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "BUILTIN_MATCHERS", "ExternalMatcher", "Matcher", "compare_all", "load_matcher", "load_matchers",
             "template_failure",
         ],
+        "qsw": ["QswMatcher"],
+        "dct": ["DctMatcher", "DctTemplate"],
+        "cr": ["CrMatcher"],
+        "cb": ["CbMatcher", "CbTemplate"],
         "experiment": [
             "PROTOCOLS", "ImpactResult", "SensorSpec", "Spread", "Trend", "UnitResult", "parse_sensors", "run_impact",
         ],

@@ -13,6 +13,7 @@ import numpy as np
 
 from forensics.impact.iriscode import IrisCode, IrisCodeMatcher
 from forensics.impact.segment import Segmentation, Segmenter
+from forensics.impact.texture import fill_unusable
 
 
 def log_gabor_1d(n: int, wavelength: float, sigma_on_f: float) -> np.ndarray:
@@ -71,10 +72,8 @@ class MasekMatcher(IrisCodeMatcher):
     def encode_texture(self, texture: np.ndarray, mask: np.ndarray,
                        segmentation: Segmentation | None = None) -> IrisCode:
         """The code of an already normalised ``(radial, angular)`` texture and its usability mask."""
-        t = np.asarray(texture, dtype=np.float64)
         usable = np.asarray(mask, dtype=bool)
-        fill = float(t[usable].mean()) if usable.any() else 0.0
-        t = np.where(usable, t, fill)
+        t = fill_unusable(texture, usable).astype(np.float64)
         response = np.fft.ifft(np.fft.fft(t, axis=1) * self._filter[None, :], axis=1)
         magnitude = np.abs(response)
         valid = usable & (magnitude > 1e-12 * max(float(magnitude.max()), 1e-300))

@@ -1,4 +1,4 @@
-"""The matcher interface, its loader, and two built-in iris codes.
+"""The matcher interface, its loader, and the built-in matchers by name.
 
 A **matcher** is anything with ``name: str``, ``higher_is_similar: bool``, ``encode(image) -> template`` and
 ``compare(a, b) -> float`` (:class:`Matcher`); it may add a vectorised ``compare_all(templates_a,
@@ -19,7 +19,11 @@ Both compare by the fractional Hamming distance over bits valid in both masks, m
 shifts along the angle; :meth:`~MasekMatcher.compare_all` does N×M templates at once on bit-packed 64-bit
 words with ``np.bitwise_count`` and gives exactly the values of the pairwise loop.
 
-Matcher specs for :func:`load_matcher`: ``masek`` | ``ko`` | ``module.path:Class`` | ``path/to/file.py:Class``
+The other four algorithms of the reference paper (USIT's ``qsw``, ``dct``, ``cr``, ``cb``) are in modules of
+their own (:mod:`forensics.impact.qsw`, :mod:`~forensics.impact.dct`, :mod:`~forensics.impact.cr`,
+:mod:`~forensics.impact.cb`) and built in by name too.
+
+Matcher specs for :func:`load_matcher`: a built-in name | ``module.path:Class`` | ``path/to/file.py:Class``
 | ``cmd:COMMAND`` (an external distance) | ``cmd+sim:COMMAND`` (an external similarity).  See
 :class:`ExternalMatcher` for the command protocol.
 
@@ -101,7 +105,13 @@ def template_failure(template: Any) -> str | None:
 
 
 # --------------------------------------------------------------------------- built-ins
-BUILTIN_MATCHERS: dict[str, type] = {"masek": MasekMatcher, "ko": KoMatcher}
+#: Built-in matchers by name: a class, or ``module:Class`` for those in modules of their own (loaded on first
+#: use, so that importing the matchers does not import every algorithm).
+BUILTIN_MATCHERS: dict[str, type | str] = {
+    "masek": MasekMatcher, "ko": KoMatcher,
+    "qsw": "forensics.impact.qsw:QswMatcher", "dct": "forensics.impact.dct:DctMatcher",
+    "cr": "forensics.impact.cr:CrMatcher", "cb": "forensics.impact.cb:CbMatcher",
+}
 
 
 # --------------------------------------------------------------------------- external programs
@@ -212,7 +222,7 @@ def load_matcher(spec: str, segmenter: Segmenter | None = None) -> Matcher:
     Parameters
     ----------
     spec
-        ``masek`` or ``ko`` (:data:`BUILTIN_MATCHERS`); ``module.path:Class``; ``path/to/file.py:Class``
+        A built-in name (:data:`BUILTIN_MATCHERS`); ``module.path:Class``; ``path/to/file.py:Class``
         (loaded with ``importlib.util.spec_from_file_location``); ``cmd:COMMAND`` (an
         :class:`ExternalMatcher` whose score is a distance) or ``cmd+sim:COMMAND`` (a similarity).  A user's
         class is instantiated with no arguments.
@@ -227,7 +237,8 @@ def load_matcher(spec: str, segmenter: Segmenter | None = None) -> Matcher:
     """
     spec = str(spec).strip()
     if spec in BUILTIN_MATCHERS:
-        return BUILTIN_MATCHERS[spec](segmenter=segmenter)
+        builtin = BUILTIN_MATCHERS[spec]
+        return (load_class(builtin, "matcher") if isinstance(builtin, str) else builtin)(segmenter=segmenter)
     for prefix, similar in (("cmd:", False), ("cmd+sim:", True)):
         if spec.startswith(prefix):
             return ExternalMatcher(spec[len(prefix):].strip(), higher_is_similar=similar, name=spec)
