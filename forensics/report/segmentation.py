@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from forensics.impact.segment.common import Segmentation
-from forensics.impact.segment.evaluate import BoundaryMark, HitRates
+from forensics.impact.segment.evaluate import BoundaryMark, HitRates, circle_error, is_hit
 from forensics.report.html import Report, new_figure
 
 
@@ -67,6 +67,11 @@ def overlay_figure(item: SegmentedImage, width: float = 4.0):
     return fig
 
 
+def _error(found, truth) -> str:
+    centre, radius = circle_error(found, truth)
+    return f"{centre:.1f} px, {100 * radius:.0f} %"
+
+
 def _rate(rates: HitRates, boundary: str, clear_only: bool = False) -> str:
     hits, n = rates.rate(boundary, clear_only)
     return f"{hits}/{n} = {100 * hits / n:.1f} %" if n else "–"
@@ -95,14 +100,13 @@ def segmentation_report(items: Iterable[SegmentedImage], rates: HitRates | None 
     drawn = 0
     for item in items:
         seg, mark = item.segmentation, item.mark
-        missed = False
+        missed, errors = False, ["", ""]
         if mark is not None:
-            from forensics.impact.segment.evaluate import is_hit
-
             missed = not (is_hit(seg.pupil, mark.pupil) and is_hit(seg.iris, mark.iris))
+            errors = [_error(seg.pupil, mark.pupil), _error(seg.iris, mark.iris)]
         if seg.ok and not missed:
             continue
-        problems.append([item.name, "missed" if missed else "", "ok" if seg.ok else "failed", seg.reason])
+        problems.append([item.name, "missed" if missed else "", *errors, "ok" if seg.ok else "failed", seg.reason])
         if drawn < max_overlays:
             if drawn == 0:
                 rep.heading("Images that missed a mark or failed a check")
@@ -111,7 +115,7 @@ def segmentation_report(items: Iterable[SegmentedImage], rates: HitRates | None 
             drawn += 1
     rep.heading("Problem images")
     if problems:
-        rep.table(["image", "mark", "verdict", "reason"], problems)
+        rep.table(["image", "mark", "pupil error", "limbus error", "verdict", "reason"], problems)
         if len(problems) > drawn:
             rep.text(f"{len(problems) - drawn} more problem images are listed but not drawn.")
     else:

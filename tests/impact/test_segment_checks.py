@@ -13,7 +13,7 @@ import pytest
 from forensics._shared.errors import InputError, UsageError
 from forensics.impact.matchers import load_matchers, template_failure
 from forensics.impact.segment import SEGMENTATIONS, Segmentation, Segmenter, plausibility, segment_iris
-from forensics.impact.segment.evaluate import BoundaryMark, hit_rates, is_hit, read_marks
+from forensics.impact.segment.evaluate import BoundaryMark, circle_error, hit_rates, is_hit, read_marks
 
 
 def _test_segment_module():
@@ -141,3 +141,25 @@ def test_read_marks_checks_its_file(tmp_path):
     # The repository's ground truth reads.
     repo_marks = read_marks(Path(__file__).with_name("data") / "iitd_marks.csv")
     assert len(repo_marks) == 134 and sum(not m.limbus_clear for m in repo_marks) == 6
+
+
+def test_segmentation_report_lists_each_problem_image_with_its_errors(tmp_path):
+    from forensics.report.segmentation import SegmentedImage, segmentation_report
+
+    img = render_eye()
+    good = segment_iris(img)
+    marks = {"hit.png": BoundaryMark("hit.png", PUPIL, IRIS),
+             "miss.png": BoundaryMark("miss.png", PUPIL, (IRIS[0] + 8.0, IRIS[1], IRIS[2]))}
+    failed = good.failed("weak limbus (0.10)")
+    items = [SegmentedImage("hit.png", img, good, marks["hit.png"]),
+             SegmentedImage("miss.png", img, good, marks["miss.png"]),
+             SegmentedImage("failed.png", img, failed, None)]
+    rates = hit_rates({"hit.png": good, "miss.png": good}, marks.values())
+    page = segmentation_report(items, rates, "caht").write(tmp_path / "rep", force=True)
+    html = Path(page).read_text()
+    # The miss shows its limbus error (8 px off the mark) and the failure its reason; the hit is not listed.
+    assert "miss.png" in html and "failed.png" in html and "hit.png" not in html
+    assert "weak limbus (0.10)" in html
+    limbus_error = circle_error(good.iris, marks["miss.png"].iris)[0]
+    assert limbus_error > 3 and f"{limbus_error:.1f} px" in html
+    assert len(list((tmp_path / "rep").glob("overlay_*.png"))) == 2
