@@ -3,7 +3,8 @@
 Run (from the repository; the images stay in ../shared, research use only)::
 
     .venv/bin/python benchmarks/iris_algorithms.py [--data ../shared/data/iitd-iris-001-040]
-        [--matcher masek --matcher ko ...] [--circles MARKS.csv] [--boot 1000] [--seed 1] [--json OUT.json]
+        [--matcher masek --matcher ko ...] [--segmentation caht|wahet] [--circles MARKS.csv] [--boot 1000]
+        [--seed 1] [--json OUT.json]
 
 At age 0 (no sensor ageing): every image is segmented once (the built-ins' shared
 :class:`~forensics.impact.segment.Segmenter`, whatever segmentation the checkout has) and encoded by every
@@ -40,7 +41,7 @@ import numpy as np
 from forensics._shared.atomic import write_text
 from forensics._shared.jsonsafe import dumps
 from forensics.impact.matchers import Matcher, compare_all, load_matchers
-from forensics.impact.segment import Segmentation, normalise
+from forensics.impact.segment import DEFAULT_SEGMENTATION, SEGMENTATIONS, Segmentation, normalise
 from forensics.io.dataset import Frame, open_dataset
 from forensics.stats.clustered import PairedScores, class_bootstrap_eer, class_weights
 
@@ -103,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="IITD folder with manifest.csv")
     parser.add_argument("--matcher", action="append", help="matcher spec (repeatable); default: all six")
     parser.add_argument("--circles", type=Path, help="CSV of given circles: use them instead of the segmentation")
+    parser.add_argument("--segmentation", choices=sorted(SEGMENTATIONS), default=DEFAULT_SEGMENTATION,
+                        help=f"the built-ins' segmentation (default {DEFAULT_SEGMENTATION})")
     parser.add_argument("--boot", type=int, default=1000, help="class resamples (default 1000)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--json", type=Path, help="also write the results as JSON to this file")
@@ -117,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     subjects = [str(f.subject) for f in frames]
     names = sorted(set(subjects))
     labels = np.array([names.index(s) for s in subjects])
-    matchers = load_matchers(args.matcher or ALGORITHMS)
-    source = f"given circles from {args.circles}" if circles else "the checkout's segmentation"
+    matchers = load_matchers(args.matcher or ALGORITHMS, segmentation=args.segmentation)
+    source = f"given circles from {args.circles}" if circles else f"segmentation {args.segmentation}"
     print(f"# iris_algorithms on {platform.processor() or platform.machine()}, {os.cpu_count()} cores: "
           f"{len(frames)} images, {len(names)} classes, {args.data}; {source}")
     codes, extract, seg_time, flagged = encode_all(frames, matchers, circles)

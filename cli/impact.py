@@ -114,9 +114,11 @@ def summary(result) -> str:
                     line += "; " + result.trend(sensor, matcher, protocol).describe()
                 failed = max(len(u.failed_images) for u in result.trajectory(sensor, matcher, protocol))
                 if failed:
-                    line += f"; up to {failed} image(s) per age failed segmentation (not scored)"
+                    line += f"; up to {failed} image(s) per age failed segmentation (their comparisons: non-matches)"
                 lines.append(line)
     if result.resumed_units:
         lines.append(f"\n{result.resumed_units} results taken from the checkpoint")
+    if result.reused_units:
+        lines.append(f"{result.reused_units} results reused from a sensor and age with byte-identical aged images")
     lines.append(f"({result.elapsed_s:.1f} s)")
     return "\n".join(lines)

@@ -103,9 +103,10 @@ def impact_report(result: ImpactResult, title: str = "Does sensor ageing hurt re
     rep.heading("Segmentation failures")
     if failures:
         rep.text("Images whose segmentation failed a check (implausible radii, pupil outside the iris, too little "
-                 "usable iris, weak boundaries) are not scored: their comparisons are left out of the EER.")
-        rep.table(["sensor", "year", "matcher", "protocol", "failed images", "comparisons left out", "images"],
-                  [[u.sensor, f"{u.age:g}", u.matcher, u.protocol, len(u.failed_images), u.excluded_pairs,
+                 "usable iris, weak boundaries) are not scored as eyes: their comparisons count as non-matches at "
+                 "every threshold (genuine pairs falsely rejected, impostor pairs correctly rejected).")
+        rep.table(["sensor", "year", "matcher", "protocol", "failed images", "comparisons as non-matches", "images"],
+                  [[u.sensor, f"{u.age:g}", u.matcher, u.protocol, len(u.failed_images), u.failed_pairs,
                     ", ".join(u.failed_images[:8]) + (" …" if len(u.failed_images) > 8 else "")]
                    for u in failures])
     else:
