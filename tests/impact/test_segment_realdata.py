@@ -38,6 +38,7 @@ def marks():
     return read_marks(MARKS)
 
 
+@pytest.mark.realdata
 @pytest.mark.parametrize("method", ["caht", "wahet"])
 def test_hit_rate_on_the_hand_checked_marks(method, marks):
     data = _data_or_skip()
