@@ -28,8 +28,8 @@ def register(sub) -> None:
         "classes) with virtual sensors, score all genuine and impostor pairs with each matcher at every age, and "
         "report the EER with a class-bootstrap interval, its paired trend against age, and the spread across "
         "sensors.  Protocols: same-age (the paper's: enrolment and probe aged together) and enrol-0 (enrolment "
-        "at age 0, probe at age T).  Matchers: built-in 'masek' (1-D Log-Gabor iris code) and 'ko' (cumulative "
-        "sums), a Python class as module:Class or file.py:Class (encode(image), compare(a, b), "
+        "at age 0, probe at age T).  Matchers: built-in 'masek' (1-D Log-Gabor iris code), 'ko' (cumulative "
+        "sums) and the paper's 'qsw', 'dct', 'cr' and 'cb', a Python class as module:Class or file.py:Class (encode(image), compare(a, b), "
         "higher_is_similar), or an external program as cmd:COMMAND (see forensics.impact.matchers).")
     parser.add_argument("src", help="dataset folder with a manifest whose 'subject' column names each image's class")
     parser.add_argument("--sensors", default="A,B,C,D,E,F,G,H",
@@ -39,7 +39,7 @@ def register(sub) -> None:
                         help="ages START:STOP:STEP or a list (default 0:96:8); at most 1,000 unless "
                              "FORENSICS_MAX_AGES allows more")
     parser.add_argument("--matcher", action="append", metavar="NAME",
-                        help="matcher (repeatable; default: masek and ko)")
+                        help="matcher (repeatable; built in: masek, ko, qsw, dct, cr, cb; default: masek and ko)")
     parser.add_argument("--segmentation", choices=["caht", "wahet"], default="caht",
                         help="segmentation of the built-in matchers: contrast-adjusted Hough (caht, default) or "
                              "weighted adaptive Hough and ellipsopolar transforms (wahet), the paper's two")
