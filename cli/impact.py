@@ -28,8 +28,8 @@ def register(sub) -> None:
         "classes) with virtual sensors, score all genuine and impostor pairs with each matcher at every age, and "
         "report the EER with a class-bootstrap interval, its paired trend against age, and the spread across "
         "sensors.  Protocols: same-age (the paper's: enrolment and probe aged together) and enrol-0 (enrolment "
-        "at age 0, probe at age T).  Matchers: built-in 'masek' (1-D Log-Gabor iris code) and 'ko' (cumulative "
-        "sums), a Python class as module:Class or file.py:Class (encode(image), compare(a, b), "
+        "at age 0, probe at age T).  Matchers: built-in 'masek' (1-D Log-Gabor iris code), 'ko' (cumulative "
+        "sums) and the paper's 'qsw', 'dct', 'cr' and 'cb', a Python class as module:Class or file.py:Class (encode(image), compare(a, b), "
         "higher_is_similar), or an external program as cmd:COMMAND (see forensics.impact.matchers).")
     parser.add_argument("src", help="dataset folder with a manifest whose 'subject' column names each image's class")
     parser.add_argument("--sensors", default="A,B,C,D,E,F,G,H",
@@ -39,7 +39,10 @@ def register(sub) -> None:
                         help="ages START:STOP:STEP or a list (default 0:96:8); at most 1,000 unless "
                              "FORENSICS_MAX_AGES allows more")
     parser.add_argument("--matcher", action="append", metavar="NAME",
-                        help="matcher (repeatable; default: masek and ko)")
+                        help="matcher (repeatable; built in: masek, ko, qsw, dct, cr, cb; default: masek and ko)")
+    parser.add_argument("--segmentation", choices=["caht", "wahet"], default="caht",
+                        help="segmentation of the built-in matchers: contrast-adjusted Hough (caht, default) or "
+                             "weighted adaptive Hough and ellipsopolar transforms (wahet), the paper's two")
     parser.add_argument("--protocol", choices=["same-age", "enrol-0", "both"], default="both",
                         help="comparison protocol (default both)")
     parser.add_argument("--impostors", type=positive_int, metavar="N",
@@ -73,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     ages = args.years
     for sensor in sensors:
         check_ageing_request(sensor.model, ages, f"sensor {sensor.name}")
-    matchers = load_matchers(args.matcher or ["masek", "ko"])
+    matchers = load_matchers(args.matcher or ["masek", "ko"], segmentation=args.segmentation)
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
     with executor_for(args) as ex:
         result = run_impact(source, sensors, ages, matchers, rng=args.seed, protocols=protocols, n_boot=args.boot,
@@ -109,8 +112,13 @@ def summary(result) -> str:
                         f"[{100 * last.ci[0]:.2f}, {100 * last.ci[1]:.2f}]")
                 if len(result.ages) > 1:
                     line += "; " + result.trend(sensor, matcher, protocol).describe()
+                failed = max(len(u.failed_images) for u in result.trajectory(sensor, matcher, protocol))
+                if failed:
+                    line += f"; up to {failed} image(s) per age failed segmentation (their comparisons: non-matches)"
                 lines.append(line)
     if result.resumed_units:
         lines.append(f"\n{result.resumed_units} results taken from the checkpoint")
+    if result.reused_units:
+        lines.append(f"{result.reused_units} results reused from a sensor and age with byte-identical aged images")
     lines.append(f"({result.elapsed_s:.1f} s)")
     return "\n".join(lines)

@@ -1,9 +1,11 @@
 """Does sensor ageing hurt recognition?  The reference paper's experiment (section 5) for any matcher.
 
 :mod:`~forensics.impact.irises` writes synthetic near-infrared iris sets (IITD-like) in the dataset format;
-:mod:`~forensics.impact.segment` finds pupil and limbus and unwraps the iris (Daugman's rubber sheet);
-:mod:`~forensics.impact.matchers` holds the matcher interface, its loader and the built-in iris codes
-(Masek's 1-D Log-Gabor, Ko et al.'s cumulative sums); :mod:`~forensics.impact.experiment` ages a set with
+:mod:`~forensics.impact.segment` finds pupil and limbus (CAHT- or WAHET-like) and unwraps the iris (Daugman's
+rubber sheet); :mod:`~forensics.impact.matchers` holds the matcher interface, its registry and loader;
+:mod:`~forensics.impact.iriscode` the bit-packed codes and Hamming distances of the built-ins
+:mod:`~forensics.impact.masek` (1-D Log-Gabor) and :mod:`~forensics.impact.ko` (cumulative sums);
+:mod:`~forensics.impact.experiment` ages a set with
 virtual sensors and measures the EER against age, with class-level bootstrap intervals and a paired trend
 test.  No figures: those are in :mod:`forensics.report.impact`.
 """
@@ -13,11 +15,18 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
         "irises": ["IrisVariation", "IrisTruth", "iris_texture", "render_iris", "simulate_irises"],
-        "segment": ["Segmentation", "Segmenter", "normalise", "segment_iris"],
+        "segment": ["SEGMENTATIONS", "Segmentation", "Segmenter", "normalise", "segment_iris"],
+        "iriscode": ["IrisCode"],
+        "masek": ["MasekMatcher"],
+        "ko": ["KoMatcher"],
         "matchers": [
-            "BUILTIN_MATCHERS", "ExternalMatcher", "IrisCode", "KoMatcher", "MasekMatcher", "Matcher",
-            "compare_all", "load_matcher", "load_matchers",
+            "BUILTIN_MATCHERS", "ExternalMatcher", "Matcher", "compare_all", "load_matcher", "load_matchers",
+            "template_failure",
         ],
+        "qsw": ["QswMatcher"],
+        "dct": ["DctMatcher", "DctTemplate"],
+        "cr": ["CrMatcher"],
+        "cb": ["CbMatcher", "CbTemplate"],
         "experiment": [
             "PROTOCOLS", "ImpactResult", "SensorSpec", "Spread", "Trend", "UnitResult", "parse_sensors", "run_impact",
         ],

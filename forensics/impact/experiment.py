@@ -25,6 +25,12 @@ first when the ``enrol-0`` protocol is asked for, because their templates are ev
 gallery (shipped to the workers once).  Nothing a task computes depends on which process runs it, so the
 result is identical in-process, in local processes and on a Dask cluster.
 
+Reuse.  Aged images change only when a defect appears or grows: sensor A's 13 ages give 3 distinct sets of
+aged images of the IITD eyes, and at age 0 every noiseless sensor records the source image.  A cheap first
+pass ages every (sensor, age) and digests its images; of the tasks with byte-identical inputs only the first
+is computed and the others take its results (exactly: everything after the ageing is a deterministic function
+of the aged images).  Sensors with frame noise give distinct images at every age and are computed in full.
+
 Resuming.  With a checkpoint folder (:class:`~forensics._shared.parallel.Checkpoint`), every finished
 (sensor, age) writes its results (and, at age 0, the enrolment templates) atomically; a rerun with the same
 settings skips them and gives the identical result.
@@ -32,6 +38,7 @@ settings skips them and gives the identical result.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import pickle
 import time
 import warnings
@@ -48,7 +55,7 @@ from forensics._shared.errors import InputError, UsageError
 from forensics._shared.parallel import Checkpoint, Executor, in_process, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
-from forensics.impact.matchers import Matcher, compare_all
+from forensics.impact.matchers import Matcher, compare_all, template_failure
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
 from forensics.sensor.presets import PRESETS, preset
@@ -129,7 +136,14 @@ def parse_sensors(spec: str, shape: tuple[int, int], bit_depth: int) -> list[Sen
 
 @dataclass
 class UnitResult:
-    """One EER: a sensor at an age, one matcher, one protocol."""
+    """One EER: a sensor at an age, one matcher, one protocol.
+
+    ``failed_images`` are the images (file names) whose template at this age carries a failed segmentation
+    (:func:`~forensics.impact.matchers.template_failure`); ``failed_pairs`` the comparisons in which one of
+    the two templates failed (for ``enrol-0`` the enrolment template at age 0 counts too).  A failed image is
+    not scored as if its circles were an eye: its comparisons count as non-matches at every threshold (a
+    genuine pair falsely rejected, an impostor pair correctly rejected; ISO/IEC 19795-1's generalised rates).
+    """
 
     sensor: str
     age: float
@@ -137,10 +151,14 @@ class UnitResult:
     protocol: str
     eer: ClassBootstrap
     histogram: dict[str, Any]
+    failed_images: tuple[str, ...] = ()
+    failed_pairs: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {"sensor": self.sensor, "age": self.age, "matcher": self.matcher, "protocol": self.protocol,
-                **self.eer.to_dict()}
+                **self.eer.to_dict(),
+                "segmentation_failures": {"images": list(self.failed_images), "n": len(self.failed_images),
+                                          "failed_pairs": self.failed_pairs}}
 
 
 @dataclass(frozen=True)
@@ -216,6 +234,10 @@ class ImpactResult:
     spreads: list[Spread] = field(default_factory=list)
     elapsed_s: float = 0.0
     resumed_units: int = 0
+    #: Units copied from a (sensor, age) whose aged images are byte for byte the same (see :func:`run_impact`).
+    reused_units: int = 0
+    #: Segmentation method of each matcher that segments (``matcher.segmenter.method``), None for the others.
+    segmentations: dict[str, str | None] = field(default_factory=dict)
 
     def unit(self, sensor: str, age: float, matcher: str, protocol: str) -> UnitResult:
         for u in self.units:
@@ -239,8 +261,8 @@ class ImpactResult:
                                                   "every sensor, age, matcher and protocol (paired)",
                 "seed": self.seed, "units": [u.to_dict() for u in self.units],
                 "trends": [t.to_dict() for t in self.trends], "spreads": [s.to_dict() for s in self.spreads],
-                "elapsed_s": self.elapsed_s, "resumed_units": self.resumed_units,
-                "forensics_version": __version__}
+                "elapsed_s": self.elapsed_s, "resumed_units": self.resumed_units, "reused_units": self.reused_units,
+                "segmentations": dict(self.segmentations), "forensics_version": __version__}
 
 
 def _classes(source: Dataset) -> tuple[np.ndarray, list[str]]:
@@ -317,6 +339,7 @@ class _ImpactJob:
     weights: np.ndarray
     level: float
     keep_enrol: bool
+    reuse: bool = True
     #: Age-0 templates of every sensor (sensor index → matcher name → templates), the enrol-0 gallery.
     enrol: dict[int, dict[str, list[Any]]] | None = None
 
@@ -335,23 +358,54 @@ def _impact_task(job: _ImpactJob, item: tuple[int, int]) -> dict[str, Any]:
     enrol = templates if age == 0.0 else (job.enrol or {}).get(s_index)
     units = []
     for matcher in job.matchers:
+        probe = templates[matcher.name]
+        probe_failed = _failed(probe)
+        names = tuple(Path(job.paths[k]).name for k in np.flatnonzero(probe_failed))
         for protocol in job.protocols:
-            gallery = templates[matcher.name] if protocol == "same-age" else enrol[matcher.name]
-            scores = _scores(matcher, gallery, templates[matcher.name], i, j, sampled)
-            if not np.all(np.isfinite(scores)):
+            gallery = probe if protocol == "same-age" else enrol[matcher.name]
+            keep = ~(_failed(gallery)[i] | probe_failed[j])
+            scores = _scores(matcher, gallery, probe, i, j, sampled)
+            if not np.all(np.isfinite(scores[keep])):
                 raise InputError(f"matcher {matcher.name} returned a score that is not a finite number")
+            scores = _reject_failed(scores, keep, matcher.higher_is_similar)
             pairs = PairedScores.of(scores, job.labels[i], job.labels[j], job.n_classes,
                                     higher_is_similar=matcher.higher_is_similar)
+            shown = pairs if keep.all() or not keep.any() else PairedScores.of(
+                scores[keep], job.labels[i[keep]], job.labels[j[keep]], job.n_classes,
+                higher_is_similar=matcher.higher_is_similar)
             # The bootstrap's matrix products are BLAS calls; OpenBLAS gives the same bits whatever its thread
             # count (it never splits a dot product), so a worker's EERs equal the in-process ones.
             units.append(UnitResult(spec.name, age, matcher.name, protocol,
                                     class_bootstrap_eer(pairs, job.weights, job.level),
-                                    _histogram(pairs, matcher.higher_is_similar)))
+                                    _histogram(shown, matcher.higher_is_similar), names,
+                                    int((~keep).sum())))
     return {"units": units, "enrol": templates if age == 0.0 and job.keep_enrol else None}
 
 
-def _aged_templates(job: _ImpactJob, s_index: int, a_index: int) -> dict[str, list[Any]]:
-    """Every source image aged by sensor ``s_index`` to age ``a_index`` (once) and encoded by every matcher.
+def _reject_failed(scores: np.ndarray, keep: np.ndarray, higher_is_similar: bool) -> np.ndarray:
+    """Scores with the pairs not in ``keep`` set one step beyond the least similar real score.
+
+    A comparison involving a failed segmentation is a non-match at every threshold that matters (ISO/IEC
+    19795-1's generalised false-reject and false-accept rates count a failure to acquire so): a genuine pair
+    is falsely rejected, an impostor pair correctly rejected.  When every pair failed, all are tied and the EER
+    is 50 %: chance.
+    """
+    if keep.all():
+        return scores
+    if not keep.any():
+        return np.zeros_like(scores)
+    real = scores[keep]
+    worst = float(real.min()) - 1.0 if higher_is_similar else float(real.max()) + 1.0
+    return np.where(keep, scores, worst)
+
+
+def _failed(templates: Sequence[Any]) -> np.ndarray:
+    """Which templates carry a failed segmentation (:func:`~forensics.impact.matchers.template_failure`)."""
+    return np.array([template_failure(t) is not None for t in templates], dtype=bool)
+
+
+def _aged_images(job: _ImpactJob, s_index: int, a_index: int) -> Iterator[np.ndarray]:
+    """Every source image aged by sensor ``s_index`` to age ``a_index``, one at a time, in the set's order.
 
     The device comes from the sensor's keyed stream and image ``k``'s frame noise from its sub-stream
     ``(k, a_index)`` (:func:`~forensics.sensor.simulate.aged_exposures`): the images ``forensics simulate age``
@@ -363,16 +417,34 @@ def _aged_templates(job: _ImpactJob, s_index: int, a_index: int) -> dict[str, li
     sensor_rng = keyed_generator(job.root, _DEVICE_STREAM, spec.stream_key())
     device = spec.model.realize(sensor_rng, [spec.model.t0 + a for a in job.ages])
     ctx = device.context(spec.model.t0 + age)
-    templates: dict[str, list[Any]] = {m.name: [] for m in job.matchers}
     for index, path in enumerate(job.paths):
         image = read_image(path)
         if image.dtype.str != job.dtype or image.shape != job.shape:
             raise InputError(f"{path}: {image.dtype} {image.shape} differs from the first image "
                              f"({np.dtype(job.dtype)} {job.shape}); a source set must be uniform")
-        aged = aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0]
+        yield aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0]
+
+
+def _aged_templates(job: _ImpactJob, s_index: int, a_index: int) -> dict[str, list[Any]]:
+    """Every aged image (:func:`_aged_images`) encoded by every matcher."""
+    templates: dict[str, list[Any]] = {m.name: [] for m in job.matchers}
+    for aged in _aged_images(job, s_index, a_index):
         for matcher in job.matchers:
             templates[matcher.name].append(matcher.encode(aged))
     return templates
+
+
+def _digest_task(job: _ImpactJob, item: tuple[int, int]) -> bytes:
+    """BLAKE2b digest of every aged image of one (sensor, age), in order (pixels, dtype and shape).
+
+    Two (sensor, age) tasks with the same digest age every image to the same array; the matchers and
+    everything after them are deterministic functions of those arrays, so their results are the same.
+    """
+    digest = hashlib.blake2b(digest_size=20)
+    for aged in _aged_images(job, *item):
+        digest.update(f"{aged.dtype.str}{aged.shape}".encode())
+        digest.update(np.ascontiguousarray(aged).tobytes())
+    return digest.digest()
 
 
 class _OneBar:
@@ -437,6 +509,7 @@ def run_impact(
     checkpoint: str | Path | None = None,
     progress: Progress = no_progress,
     executor: Executor | None = None,
+    reuse: bool = True,
 ) -> ImpactResult:
     """Age ``source`` with every sensor to every age, score it with every matcher, and measure the EER.
 
@@ -471,6 +544,11 @@ def run_impact(
         Progress wrapper; one bar counts the finished (sensor, age) tasks.
     executor
         Where the (sensor, age) tasks run (default: in this process); the result is the same on every backend.
+    reuse
+        Compute each distinct set of aged images once: a (sensor, age) whose aged images are byte for byte
+        those of an earlier one (and, for ``enrol-0``, whose age-0 images are too) takes its results, under its
+        own sensor and age (``reused_units`` counts them).  The result is identical either way; False recomputes
+        everything (for checking that).
     """
     started = time.perf_counter()
     ages = sorted(float(a) for a in ages)  # trends read ages in order
@@ -494,21 +572,30 @@ def run_impact(
                      [str(Path(f.path).absolute()) for f in source.frames], np.dtype(info.dtype).str, shape, labels,
                      len(class_names), impostors, _stream_root(rng),
                      class_weights(len(class_names), n_boot, keyed_generator(rng, _BOOT_STREAM)), float(level),
-                     keep_enrol="enrol-0" in protocols)
+                     keep_enrol="enrol-0" in protocols, reuse=bool(reuse))
+    segmentations = {m.name: _segmentation_of(m) for m in matchers}
     config = {"source": str(source.root), "files": [f.file for f in source.frames], "sensors": [s.name for s in sensors],
               "models": [s.model.to_dict() for s in sensors], "ages": ages, "matchers": names,
+              "segmentations": segmentations,
               "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
               "seed": seed_record(rng), "forensics_version": __version__}
     store = Checkpoint(checkpoint, config, inputs=job.paths) if checkpoint is not None else None
-    found, resumed = _run_tasks(_usable_executor(resolve(executor), job), job, store, progress)
+    found, resumed, reused = _run_tasks(_usable_executor(resolve(executor), job), job, store, progress)
     units = [u for s in range(len(sensors)) for a in range(len(ages)) for u in found[s, a]]
     result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,
                           sampled, [s.name for s in sensors], ages, names, list(protocols), int(n_boot),
-                          float(level), seed_record(rng), units, resumed_units=resumed)
+                          float(level), seed_record(rng), units, resumed_units=resumed, reused_units=reused,
+                          segmentations=segmentations)
     result.trends = trends(result)
     result.spreads = spreads(result)
     result.elapsed_s = time.perf_counter() - started
     return result
+
+
+def _segmentation_of(matcher: Matcher) -> str | None:
+    """The segmentation method a matcher uses (its ``segmenter.method``), or None if it has no segmenter."""
+    method = getattr(getattr(matcher, "segmenter", None), "method", None)
+    return str(method) if method is not None else None
 
 
 def _check_design(ages: list[float], matchers: Sequence[Matcher], protocols: Sequence[str]) -> None:
@@ -525,20 +612,27 @@ def _check_design(ages: list[float], matchers: Sequence[Matcher], protocols: Seq
 
 
 def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
-               progress: Progress) -> tuple[dict[tuple[int, int], list[UnitResult]], int]:
-    """Run every (sensor, age) task on ``ex``: the units of each, and how many units came from ``store``.
+               progress: Progress) -> tuple[dict[tuple[int, int], list[UnitResult]], int, int]:
+    """Run every (sensor, age) task on ``ex``: the units of each, how many came from ``store``, how many were reused.
 
+    With ``job.reuse`` the aged images of every task are digested first (:func:`_digest_task`, cheap: ageing
+    only), and of the tasks whose probe images — and, for ``enrol-0``, whose sensor's age-0 images — have the
+    same digest only the first is computed; the others get its units under their own sensor and age.  Aged
+    images change only when a defect appears or grows (sensor A: 3 distinct sets in 13 ages, and age 0 is the
+    source image for every noiseless sensor), so most of the work repeats byte-identical inputs.
     With the enrol-0 protocol the age-0 tasks run first (their templates are the later tasks' gallery);
     otherwise all tasks form one map.  Either way a task's result does not depend on the order.
     """
     everything = [(s, a) for s in range(len(job.sensors)) for a in range(len(job.ages))]
-    first = [(s, a) for s, a in everything if job.keep_enrol and job.ages[a] == 0.0]
-    stages = [first, [t for t in everything if t not in first]]
+    rep = _representatives(ex, job, everything, progress) if job.reuse else {t: t for t in everything}
+    computed = [t for t in everything if rep[t] == t]
+    first = [(s, a) for s, a in computed if job.keep_enrol and job.ages[a] == 0.0]
+    stages = [first, [t for t in computed if t not in first]]
 
     def key(task: tuple[int, int]) -> str:
         return f"sensor{task[0]:02d}-age{task[1]:03d}"
 
-    bar = _OneBar(progress, len(everything), "impact: sensor × age")
+    bar = _OneBar(progress, len(computed), "impact: sensor × age")
     found: dict[tuple[int, int], list[UnitResult]] = {}
     resumed = 0
     for tasks in stages:
@@ -548,17 +642,43 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
         done = {k for k in keys if store is not None and store.has(k)}
         outputs = ex.map(_impact_task, tasks, shared=job, progress=bar, desc="impact: sensor × age",
                          checkpoint=store, keys=keys)
-        enrol: dict[int, dict[str, list[Any]]] = {}
+        enrol_of: dict[tuple[int, int], dict[str, list[Any]]] = {}
         for task, k, out in zip(tasks, keys, outputs):
             found[task] = out["units"]
             if k in done:
                 resumed += len(out["units"])
             if out["enrol"] is not None:
-                enrol[task[0]] = out["enrol"]
-        if enrol:
-            job = dataclasses.replace(job, enrol=enrol)
+                enrol_of[task] = out["enrol"]
+        if enrol_of:
+            zero = job.ages.index(0.0)
+            job = dataclasses.replace(job, enrol={s: enrol_of[rep[s, zero]] for s in range(len(job.sensors))})
     bar.close()
-    return found, resumed
+    reused = 0
+    for task in everything:
+        if rep[task] != task:
+            spec, age = job.sensors[task[0]], job.ages[task[1]]
+            found[task] = [dataclasses.replace(u, sensor=spec.name, age=age) for u in found[rep[task]]]
+            reused += len(found[task])
+    return found, resumed, reused
+
+
+def _representatives(ex: Executor, job: _ImpactJob, tasks: list[tuple[int, int]],
+                     progress: Progress) -> dict[tuple[int, int], tuple[int, int]]:
+    """For every task, the first task whose results must equal its own (itself when there is none).
+
+    Results are equal when the probe images are (same digest) and, for the enrol-0 protocol, the enrolment
+    images too (the sensor's age-0 digest).  Tasks are ordered sensor by sensor, ages ascending, so a group
+    holding an age-0 task is represented by an age-0 task (whose templates are the enrolment gallery).
+    """
+    digests = dict(zip(tasks, ex.map(_digest_task, tasks, shared=job, progress=progress,
+                                     desc="impact: ageing digests")))
+    zero = job.ages.index(0.0) if job.keep_enrol else None
+    first: dict[tuple[bytes, bytes | None], tuple[int, int]] = {}
+    rep = {}
+    for s, a in tasks:
+        group = (digests[s, a], digests[s, zero] if zero is not None else None)
+        rep[s, a] = first.setdefault(group, (s, a))
+    return rep
 
 
 def _ols_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -2,9 +2,9 @@
 module of figures per domain — :mod:`~forensics.report.ageing`, :mod:`~forensics.report.prnu`,
 :mod:`~forensics.report.defects`, :mod:`~forensics.report.darkseries` (dark-frame series),
 :mod:`~forensics.report.scores`, :mod:`~forensics.report.validate`, :mod:`~forensics.report.cluster`,
-:mod:`~forensics.report.identify`, :mod:`~forensics.report.check` (the model check's), :mod:`~forensics.report.impact`
-— plus the demo's page (:mod:`~forensics.report.demo`).  Report functions take result objects and never
-re-estimate; science modules never import this package.
+:mod:`~forensics.report.identify`, :mod:`~forensics.report.check` (the model check's), :mod:`~forensics.report.impact`,
+:mod:`~forensics.report.segmentation` — plus the demo's page (:mod:`~forensics.report.demo`).  Report functions
+take result objects and never re-estimate; science modules never import this package.
 """
 import lazy_loader as _lazy
 
@@ -24,6 +24,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "impact": ["histograms_figure", "impact_report", "matchers_figure", "sensors_figure"],
         "prnu": ["add_same_device", "match_report", "same_device_report"],
         "scores": ["plot_det", "plot_score_histograms"],
+        "segmentation": ["SegmentedImage", "overlay_figure", "segmentation_report"],
         "validate": ["validation_report"],
     },
 )

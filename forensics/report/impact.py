@@ -99,6 +99,18 @@ def impact_report(result: ImpactResult, title: str = "Does sensor ageing hurt re
         for k, matcher in enumerate(result.matchers):
             rep.figure(sensors_figure(result, matcher, protocol), f"sensors_{protocol}_{k}",
                        f"{matcher}: EER against age per sensor; dashed: mean over sensors with its paired interval")
+    failures = [u for u in result.units if u.failed_images]
+    rep.heading("Segmentation failures")
+    if failures:
+        rep.text("Images whose segmentation failed a check (implausible radii, pupil outside the iris, too little "
+                 "usable iris, weak boundaries) are not scored as eyes: their comparisons count as non-matches at "
+                 "every threshold (genuine pairs falsely rejected, impostor pairs correctly rejected).")
+        rep.table(["sensor", "year", "matcher", "protocol", "failed images", "comparisons as non-matches", "images"],
+                  [[u.sensor, f"{u.age:g}", u.matcher, u.protocol, len(u.failed_images), u.failed_pairs,
+                    ", ".join(u.failed_images[:8]) + (" …" if len(u.failed_images) > 8 else "")]
+                   for u in failures])
+    else:
+        rep.text("None: every image passed the segmentation's checks at every age.")
     rep.heading("Score distributions at the first and last age")
     for k, matcher in enumerate(result.matchers):
         protocol = result.protocols[0]

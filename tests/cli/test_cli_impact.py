@@ -126,7 +126,10 @@ def test_checkpoint_resumes_and_refuses_other_settings(cli, tmp_path):
     first, again = (cli(*base, "--seed", "2") for _ in range(2))
     assert first[0] == again[0] == 0, first[2] + again[2]
     one, two = json.loads(first[1]), json.loads(again[1])
-    assert one["resumed_units"] == 0 and two["resumed_units"] == 2 * 2 * 2  # everything from the checkpoint
+    # Everything from the checkpoint: the computed units resumed, the others reused from identical aged images
+    # (A's and H×500's age 0 are both the source images), as in the first run.
+    assert one["resumed_units"] == 0 and two["reused_units"] == one["reused_units"] > 0
+    assert two["resumed_units"] + two["reused_units"] == 2 * 2 * 2
     assert one["units"] == two["units"] and one["trends"] == two["trends"] and one["spreads"] == two["spreads"]
     code, _, err = cli(*base, "--seed", "3")
     assert code == 2 and "other settings" in err

@@ -378,7 +378,7 @@ def test_load_builtins_share_a_segmenter():
     masek, ko = load_matcher("masek", seg), load_matcher("ko", seg)
     assert isinstance(masek, MasekMatcher) and isinstance(ko, KoMatcher)
     assert masek.segmenter is seg and ko.segmenter is seg
-    assert set(BUILTIN_MATCHERS) == {"masek", "ko"}
+    assert set(BUILTIN_MATCHERS) == {"masek", "ko", "qsw", "dct", "cr", "cb"}
     both = load_matchers(["masek", "ko"])
     assert both[0].segmenter is both[1].segmenter
     img = render_eye()

@@ -57,6 +57,7 @@ def assert_identical(a, b) -> None:
     for d in (da, db):
         d.pop("elapsed_s")
         d.pop("resumed_units")
+        d.pop("reused_units")
     assert da == db
     assert len(a.units) == len(b.units)
     for ua, ub in zip(a.units, b.units):
@@ -178,3 +179,36 @@ def test_a_matcher_that_cannot_be_pickled_runs_in_process_with_a_warning(irises)
     with Executor("processes", workers=2) as ex, pytest.warns(RuntimeWarning, match="unpicklable.*cannot be sent"):
         fallback = _run(irises, ex, [Unpicklable()])
     assert_identical(fallback, alone)
+
+
+class CountingMasek(MasekMatcher):
+    """Masek's matcher that counts its encodes."""
+
+    def __init__(self, segmenter=None) -> None:
+        super().__init__(segmenter)
+        self.encodes = 0
+
+    def encode(self, image):
+        self.encodes += 1
+        return super().encode(image)
+
+
+def test_reusing_identical_aged_images_gives_the_identical_result(irises):
+    # A and D add no frame noise: at age 0 both record the source image, and A's defects of year 8 are still all
+    # it has at year 16 (3 distinct image sets in 13 ages on this set).  B+noise draws new noise every frame, so
+    # nothing of it can be reused.  Both protocols: enrol-0 reuse must also match the enrolment images.
+    shape = irises.shape()[:2]
+    sensors = [*parse_sensors("A,D", shape, 8), _sensors(irises)[0]]
+    ages = [0.0, 8.0, 16.0]
+    runs = {}
+    for reuse in (True, False):
+        masek = CountingMasek()
+        runs[reuse] = (run_impact(irises, sensors, ages, [masek, load_matcher("ko", masek.segmenter)], rng=SEED,
+                                  n_boot=N_BOOT, reuse=reuse), masek.encodes)
+    (fast, fast_encodes), (slow, slow_encodes) = runs[True], runs[False]
+    n = len(irises)
+    assert slow_encodes == 3 * 3 * n and slow.reused_units == 0
+    # The digests find at least D's age 0 (= A's) and A's year 16 (= its year 8); B+noise is computed in full.
+    assert fast_encodes <= slow_encodes - 2 * n and fast.reused_units >= 2 * 2 * 2
+    assert fast_encodes >= 3 * n + 2   # B+noise's 3 ages, plus at least A's first image set and its defects
+    assert_identical(fast, slow)

@@ -6,6 +6,7 @@ circles, a known eyelid and a known specular spot, so that every result can be c
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -174,7 +175,10 @@ def test_ten_bit_images_behave_like_eight_bit_ones():
     img = render_eye(spot=(PUPIL[2] + 4.0, 0.0, 6.0))
     wide = img.astype(np.uint16) * 4
     seg8, seg10 = segment_iris(img), segment_iris(wide)
-    assert seg8 == seg10
+    # Same circles, lids and verdict; the quality (a mean of ratios computed in float32 from x/255 and
+    # 4x/1023) may differ in its last digits.
+    assert replace(seg8, quality=0.0) == replace(seg10, quality=0.0)
+    assert seg8.quality == pytest.approx(seg10.quality, abs=1e-6)
     assert np.array_equal(normalise(img, seg8)[1], normalise(wide, seg10)[1])
 
 
@@ -277,8 +281,10 @@ def test_segmenter_caches_one_image():
 
 def test_segmenter_passes_its_parameters():
     img = render_eye()
-    narrow = Segmenter(segment_params={"iris_radius": (60.0, 70.0)}, normalise_params={"reflection": 0.5})
+    narrow = Segmenter(segment_params={"iris_ratio": (1.5, 2.0)}, normalise_params={"reflection": 0.5})
     _texture, mask, seg = narrow.unwrap(img)
-    assert 60 <= seg.iris[2] <= 70                  # the limbus was looked for in the given range only
+    # The limbus (radius 100, 2.6 pupil radii) was looked for within 2 pupil radii only: not found there.
+    assert seg.iris[2] <= 2.0 * seg.pupil[2] + 1e-6 or not seg.ok
+    assert circle_error(segment_iris(img).iris, IRIS) <= 3.0
     # reflection 0.5 × 255 masks everything brighter than 127: most of the iris's light half.
     assert mask.mean() < normalise(img, seg)[1].mean()

@@ -1,0 +1,51 @@
+"""Both segmentations on real near-infrared eyes: the hit rate on the hand-checked IITD marks.
+
+The images are the IIT Delhi Iris Database's subjects 001–040 at ``../shared/data/iitd-iris-001-040`` (research
+use only; never copied into the repository); the marks (numbers only) are ``data/iitd_marks.csv``, made as its
+README describes.  Skipped when the images are absent.
+
+Thresholds: the segmentations are deterministic, so a threshold guards against regressions rather than
+sampling noise; each sits a few images below the rate measured when the test was written (see
+``benchmarks/RESULTS_impact.md``), a margin of about two binomial standard deviations at n = 134
+(√(p(1−p)/n) ≈ 2–4 %) so that a change in a library's numerics is not taken for a regression.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from forensics.impact.segment import segment_iris
+from forensics.impact.segment.evaluate import hit_rates, read_marks
+from forensics.io.images import read_image
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "iitd-iris-001-040"
+MARKS = Path(__file__).with_name("data") / "iitd_marks.csv"
+
+#: (pupil, limbus) hit-rate floors per method; measured: see the module docstring.
+FLOORS = {"caht": (0.95, 0.60), "wahet": (0.85, 0.45)}
+
+
+def _data_or_skip() -> Path:
+    if not DATA.is_dir():
+        pytest.skip(f"IITD iris images not found at {DATA} (present in CI beside the repository; absent on a fresh "
+                    "machine: the database may not be copied into the repository)")
+    return DATA
+
+
+@pytest.fixture(scope="module")
+def marks():
+    return read_marks(MARKS)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("method", ["caht", "wahet"])
+def test_hit_rate_on_the_hand_checked_marks(method, marks):
+    data = _data_or_skip()
+    segs = {m.file: segment_iris(read_image(data / m.file), method) for m in marks}
+    rates = hit_rates(segs, marks)
+    pupil, limbus = FLOORS[method]
+    hits, n = rates.rate("pupil")
+    assert hits / n >= pupil, f"{method}: pupil hit rate {hits}/{n}"
+    hits, n = rates.rate("limbus")
+    assert hits / n >= limbus, f"{method}: limbus hit rate {hits}/{n}"
