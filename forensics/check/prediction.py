@@ -197,7 +197,7 @@ class Predictor:
                 if frozen is not None:
                     typical_reading = frozen[r]
                 else:
-                    deviation = np.clip(mu, 0.0, self.meas.full_scale) - clean.mean_signal(light, context(clean, g))
+                    deviation = np.clip(mu, 0.0, self.meas.clip_level) - clean.mean_signal(light, context(clean, g))
                     typical_reading = means[r] - deviation
                 if record is not None:
                     record[r] = np.where(pixels.defect_mask[r], typical_reading, 0.0)
@@ -216,7 +216,7 @@ class Predictor:
     def censor(self, device: Device, raw: np.ndarray) -> np.ndarray:
         """The mean readout the data show of latent means ``raw`` (R, H, W): :func:`censored_mean` per condition
         (a new array)."""
-        return np.stack([censored_mean(raw[r], context(device, g), self.meas.full_scale)
+        return np.stack([censored_mean(raw[r], context(device, g), self.meas.clip_level)
                          for r, g in enumerate(self.rgroups)])
 
 

@@ -163,11 +163,15 @@ def _summed_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
         offsets = np.arange(0, hi - lo + 1, dtype=float)
     k = c[:, None] + offsets[None, :]
     valid = (k >= lo) & (k <= hi)
-    zl = (k - 0.5 - mu[:, None]) / sigma[:, None]
-    zh = (k + 0.5 - mu[:, None]) / sigma[:, None]
-    zl = np.where(k <= lo, -np.inf, zl)  # the bounds take the tails
-    zh = np.where(k >= hi, np.inf, zh)
-    p = np.where(valid, _mass_between(zl, zh), 0.0)
+    # each level's mass between its two half-integer edges, every edge's tail probabilities computed once (a
+    # level's upper edge is the next one's lower edge, bit for bit: k + ½ = (k + 1) − ½ exactly) — the same
+    # numbers as _mass_between level by level, at a quarter of its ndtr calls
+    edges = np.concatenate([k - 0.5, k[:, -1:] + 0.5], axis=1)
+    z = (edges - mu[:, None]) / sigma[:, None]
+    z[:, :-1] = np.where(k <= lo, -np.inf, z[:, :-1])  # the bounds take the tails
+    z[:, 1:] = np.where(k >= hi, np.inf, z[:, 1:])
+    lower, upper = ndtr(z), ndtr(-z)
+    p = np.where(valid, np.where(z[:, :-1] > 0, upper[:, :-1] - upper[:, 1:], lower[:, 1:] - lower[:, :-1]), 0.0)
     if truncate:
         p = np.where((k > lo) & (k < hi), p, 0.0)
     tot = p.sum(axis=1)
