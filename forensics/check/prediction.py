@@ -233,8 +233,22 @@ def censored_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: f
     if hi < 3 or not near.any():
         return out
     sigma = np.sqrt(noise_variance(noise, mu[near], ctx, elec[near]))
-    out[near] = readout_moments(mu[near], sigma, 0, hi, truncate=True)[0]
+    out[near] = distinct_readout_means(mu[near], sigma, hi)
     return out
+
+
+def distinct_readout_means(mu: np.ndarray, sigma: np.ndarray, hi: int) -> np.ndarray:
+    """:func:`~forensics.stats.censored.readout_moments`' truncated mean, computed once per distinct (μ, σ).
+
+    Why: the sum over levels costs O(σ) per value, and in dark frames every pixel without a pattern of its own
+    has the same latent mean and noise (a 12-bit camera at K = 0.1 DN/e⁻: every dark pixel sits within 4 σ of 0,
+    and the sum was most of the check's time); with per-pixel patterns the values are all distinct and this
+    costs one sort more.  The same numbers either way."""
+    pairs = mu + 1j * sigma  # one sortable value per pair (complex numbers sort by real, then imaginary part)
+    distinct, inverse = np.unique(pairs, return_inverse=True)
+    if len(distinct) > 0.5 * len(pairs):
+        return readout_moments(mu, sigma, 0, hi, truncate=True)[0]
+    return readout_moments(distinct.real, distinct.imag, 0, hi, truncate=True)[0][inverse.ravel()]
 
 
 def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effects: Sequence[Effect],
