@@ -68,14 +68,29 @@ def test_the_line_search_takes_the_step_length_from_chi2():
     assert calls[-1] == best[0]  # the chosen trial was the last evaluated: its patterns are in place
 
 
-def test_auto_converges_adds_shot_noise_and_covers_k(series):
+#: Other bit depths (emva1288 picks the black offset: 0.65 DN at 8 bits, where the dark frames sit on the bound;
+#: 4 DN at 14 bits, where the data never exceed 12 bits and the saturation at 1504 DN is the bound)
+OTHER_DEPTHS = {8: StandardSeries(shape=(32, 48), steps=6, spatial=4, bit_depth=8),
+                14: StandardSeries(shape=(32, 48), steps=6, spatial=4, bit_depth=14)}
+
+
+def check_standard(folder, series: StandardSeries) -> None:
     """--auto settles, adds shot noise and the dark current the camera has (at 22 °C it doubles the dark level
     over the series), ends with nothing flagged, and the conversion gain's 95 % interval holds K = 0.1."""
-    sel = check_auto(series, rng=0)
+    sel = check_auto(folder, rng=0)
     final = sel.result
     assert all(p.converged for s in sel.steps for p in s.result.params), sel.stopped
     assert {"shot_noise", "dark_current"} <= set(sel.added), [(s.label, s.flagged) for s in sel.steps]
     assert final.flagged == [] and sel.stopped == "nothing flagged"
     k = next(p for p in final.params if p.label == "shot_noise.g")
-    assert k.se is not None and abs(k.value - SERIES.K) <= 1.96 * k.se, k
+    assert k.se is not None and abs(k.value - series.K) <= 1.96 * k.se, k
     assert final.error["pixel"] < 1.05
+
+
+def test_auto_converges_adds_shot_noise_and_covers_k(series):
+    check_standard(series, SERIES)
+
+
+@pytest.mark.parametrize("bits", sorted(OTHER_DEPTHS))
+def test_auto_at_other_bit_depths(tmp_path, bits):
+    check_standard(make_standard_series(tmp_path / "series", 2, OTHER_DEPTHS[bits]), OTHER_DEPTHS[bits])
