@@ -165,7 +165,7 @@ def _summed_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
     valid = (k >= lo) & (k <= hi)
     # each level's mass between its two half-integer edges, every edge's tail probabilities computed once (a
     # level's upper edge is the next one's lower edge, bit for bit: k + ½ = (k + 1) − ½ exactly) — the same
-    # numbers as _mass_between level by level, at a quarter of its ndtr calls
+    # numbers as _mass_between level by level, with half its ndtr calls
     edges = np.concatenate([k - 0.5, k[:, -1:] + 0.5], axis=1)
     z = (edges - mu[:, None]) / sigma[:, None]
     z[:, :-1] = np.where(k <= lo, -np.inf, z[:, :-1])  # the bounds take the tails
