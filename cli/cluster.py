@@ -22,6 +22,7 @@ from forensics.cli.common import (
     progress_for,
     warn,
 )
+from forensics.cli.common import positive_float  # option types: values checked where parsed
 
 
 def register(sub: Any) -> None:
@@ -45,12 +46,12 @@ def register(sub: Any) -> None:
     parser.add_argument("--crop", type=int, default=1024, metavar="N",
                         help="side of the centred square compared (default 1024; at most the short side, rounded "
                              "down to a multiple of 8; larger crops find weaker images)")
-    parser.add_argument("--sigma", type=float, default=2.0,
+    parser.add_argument("--sigma", type=positive_float, default=2.0,
                         help="residual noise level, 8-bit scale (default 2, the reference's query residual)")
     add_input_options(parser)
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("set",), outputs=("--output", "--report"))
 
 
 def _captured(frame: Any) -> float | None:

@@ -1,24 +1,37 @@
-"""Shared plumbing of the command layer: output options, emitting results, exit codes.
+"""Shared plumbing of the command layer: output options, option types, the input/output guard, emitting
+results, exit codes.
 
-Every command module defines ``register(subparsers)`` which adds its parser and
-sets ``handler`` (a function ``handler(args) -> int``).  Handlers parse nothing
-themselves beyond ``args``, call the library, and hand a result to
-:func:`emit`.  Nothing here does science.
+Every command module defines ``register(subparsers)`` which adds its parser and sets ``handler`` (a function
+``handler(args) -> int``) and declares which of its arguments name inputs and which outputs::
+
+    parser.set_defaults(handler=run, inputs=("set", "--db"), outputs=("--report",))
+
+:func:`~forensics.cli.main.main` applies :func:`guard_outputs` to that declaration once, before any handler
+runs.  Handlers parse nothing themselves beyond ``args``, call the library, and hand a result to :func:`emit`.
+Option values are checked where argparse parses them (the ``type=`` functions below: exit 2).  Everything
+printed for a human passes :func:`~forensics._shared.text.printable` here, in :func:`say`.  Nothing here does
+science.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import math
+import os
 import sys
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, TextIO
 
 from forensics._shared.jsonsafe import dumps
 from forensics._shared.progress import Progress, choose_progress
+from forensics._shared.text import printable
 
 EXIT_OK = 0
+#: Unexpected failures (a bug: "internal error"), out of memory, and `validate` missing an acceptance figure.
+EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_BAD_INPUT = 3
+EXIT_INTERRUPTED = 130
 
 
 def add_output_options(parser: argparse.ArgumentParser, report: bool = True) -> None:
@@ -34,17 +47,76 @@ def add_output_options(parser: argparse.ArgumentParser, report: bool = True) -> 
 def add_execution_options(parser: argparse.ArgumentParser) -> None:
     """Add ``--workers N`` and ``--scheduler ADDRESS`` (the execution layer, :mod:`forensics._shared.parallel`)."""
     group = parser.add_argument_group("execution")
-    group.add_argument("--workers", type=int, default=None, metavar="N",
+    group.add_argument("--workers", type=positive_int, default=None, metavar="N",
                        help="worker processes (default: every core; 1 runs everything in this process)")
     group.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run on a Dask cluster: its scheduler address (tcp://host:8786), or 'local' for a "
                             "cluster on this machine (default: $FORENSICS_SCHEDULER, else local processes)")
 
 
+# ----------------------------------------------------------------------------- option types (exit 2)
+def _number(text: str, kind: type = float) -> float:
+    """``text`` as a finite number of ``kind`` (int accepts ``1e3``-style only when whole), else ArgumentTypeError."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"'{text}' is not a finite number")
+    if kind is int:
+        if not value.is_integer():
+            raise argparse.ArgumentTypeError(f"'{text}' is not a whole number")
+        return int(value)
+    return value
+
+
+def finite_float(text: str) -> float:
+    """argparse type: any finite number (NaN and ±inf refused)."""
+    return _number(text)
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (a threshold, a noise level, a scale)."""
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"'{text}': give a number greater than 0")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    """argparse type: a finite number ≥ 0 (a tolerance, a noise level that may be zero)."""
+    value = _number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"'{text}': give a number ≥ 0")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number ≥ 1 (a count)."""
+    value = _number(text, int)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"'{text}': give a whole number ≥ 1")
+    return value
+
+
+def seed(text: str) -> int:
+    """argparse type of ``--seed``: a whole number ≥ 0 (what :class:`numpy.random.SeedSequence` takes)."""
+    value = _number(text, int)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"'{text}': a seed is a whole number ≥ 0")
+    return value
+
+
+def odd_int(text: str) -> int:
+    """argparse type of a median kernel size: an odd whole number ≥ 1."""
+    value = _number(text, int)
+    if value < 1 or value % 2 == 0:
+        raise argparse.ArgumentTypeError(f"'{text}': give an odd whole number ≥ 1 (e.g. 9)")
+    return value
+
+
 def probability(text: str) -> float:
     """argparse type of ``--pfa``: a probability strictly between 0 and 1."""
-    import math
-
     try:
         value = float(text)
     except ValueError:
@@ -52,6 +124,37 @@ def probability(text: str) -> float:
     if not 0 < value < 1:
         raise argparse.ArgumentTypeError(f"--pfa '{text}': give a probability between 0 and 1, e.g. 1e-3")
     return value
+
+
+#: Smallest side of an image the commands write (the defect and PRNU statistics need a few blocks of 8).
+MIN_SIDE = 8
+
+
+def frame_size(text: str) -> tuple[int, int]:
+    """argparse type of ``--size WIDTHxHEIGHT``: ``(height, width)``, both whole numbers ≥ :data:`MIN_SIDE`.
+
+    The memory such a frame needs is checked by the library before anything is drawn.
+    """
+    parts = text.lower().split("x")
+    try:
+        w, h = (int(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}': give WIDTHxHEIGHT in pixels, e.g. 640x480") from None
+    if w < MIN_SIDE or h < MIN_SIDE:
+        raise argparse.ArgumentTypeError(f"'{text}': width and height must be at least {MIN_SIDE} pixels")
+    return h, w
+
+
+def years(text: str) -> list[float]:
+    """argparse type of ``--years``: :func:`forensics.sensor.simulate.parse_years` (finite, ≥ 0, distinct, at
+    most ``FORENSICS_MAX_AGES`` ages)."""
+    from forensics._shared.errors import UsageError
+    from forensics.sensor.simulate import parse_years
+
+    try:
+        return parse_years(text)
+    except UsageError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--years ")) from None
 
 
 def add_input_options(parser: argparse.ArgumentParser) -> None:
@@ -96,23 +199,90 @@ def progress_for(args: argparse.Namespace) -> Progress:
     return choose_progress(quiet=getattr(args, "quiet", False) or getattr(args, "json", False))
 
 
+def say(text: str, stream: TextIO | None = None, end: str = "\n") -> None:
+    """Write ``text`` and ``end`` to ``stream`` (default stdout) for a human: the one place where what the
+    command prints is made safe — untrusted text (file names, manifest fields) is escaped, so an escape
+    sequence in it cannot act on the terminal."""
+    stream = sys.stdout if stream is None else stream
+    stream.write(printable(text) + end)
+
+
 def emit(args: argparse.Namespace, summary: str | Callable[[], str], payload: dict[str, Any] | Callable[[], dict[str, Any]]) -> None:
     """Print ``payload`` as one JSON object with --json, else the human ``summary``."""
     if getattr(args, "json", False):
         obj = payload() if callable(payload) else payload
-        sys.stdout.write(dumps(obj, indent=2))
+        sys.stdout.write(dumps(obj, indent=2))  # json escapes control characters itself
         sys.stdout.write("\n")
     else:
         text = summary() if callable(summary) else summary
-        sys.stdout.write(text.rstrip("\n") + "\n")
+        say(text.rstrip("\n"))
 
 
 def info(args: argparse.Namespace, message: str) -> None:
     """A note for the user on stderr (suppressed by --quiet)."""
     if not getattr(args, "quiet", False):
-        print(message, file=sys.stderr)
+        say(message, sys.stderr)
 
 
 def warn(message: str) -> None:
     """A warning on stderr, always shown."""
-    print(f"warning: {message}", file=sys.stderr)
+    say(f"warning: {message}", sys.stderr)
+
+
+# ----------------------------------------------------------------------------- inputs and outputs
+def _dest(name: str) -> str:
+    """The attribute of ``args`` behind an argument as declared (``--report`` → ``report``, ``set`` → ``set``)."""
+    return name.lstrip("-").replace("-", "_")
+
+
+def _values(value: Any) -> Iterator[str]:
+    """The path strings of an argument's value (a string or a list of them; None for an absent option)."""
+    if value is None:
+        return
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            yield from _values(item)
+    else:
+        yield os.fspath(value) if isinstance(value, os.PathLike) else str(value)
+
+
+def _input_paths(value: Any) -> Iterator[str]:
+    """Every existing path an input argument may name: the value itself, and the parts of a spec such as
+    ``A,H*500,sensor.json`` (comma lists) or ``file.py:Class`` (a user's plug-in).  Words that are no path
+    (``centre``, ``masek``, a preset letter) are dropped because no such file exists."""
+    for text in _values(value):
+        candidates = {text}
+        for part in text.split(","):
+            part = part.strip()
+            candidates.add(part)
+            head, sep, _ = part.rpartition(":")
+            if sep and head.endswith(".py"):
+                candidates.add(head)
+        yield from (c for c in candidates if c and os.path.lexists(c))
+
+
+def declared_paths(args: argparse.Namespace) -> tuple[list[str], list[tuple[str, str]]]:
+    """The command's input paths, and its outputs as ``(argument, path)``, from its parser's declaration."""
+    inputs = [p for name in getattr(args, "inputs", ()) for p in _input_paths(getattr(args, _dest(name), None))]
+    outputs = [(name, p) for name in getattr(args, "outputs", ()) for p in _values(getattr(args, _dest(name), None))]
+    return inputs, outputs
+
+
+def guard_outputs(args: argparse.Namespace) -> None:
+    """Refuse any output that is, contains or lies inside an input (:func:`~forensics._shared.atomic.refuse_inputs`),
+    with or without --force, before any work is done and before anything is replaced or deleted.
+
+    Raises
+    ------
+    UsageError
+        Naming the output argument, the output and the input it would overwrite.
+    """
+    from forensics._shared.atomic import refuse_inputs
+    from forensics._shared.errors import UsageError
+
+    inputs, outputs = declared_paths(args)
+    for name, path in outputs:
+        try:
+            refuse_inputs(path, inputs)
+        except UsageError as exc:
+            raise UsageError(f"{name} {exc}" if name.startswith("-") else str(exc)) from None

@@ -37,7 +37,7 @@ def register(sub) -> None:
     add_input_options(parser)
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("query", "--reference", "--model", "--mask"), outputs=("--report",))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,7 +11,10 @@ from forensics.cli.common import (
     emit,
     executor_for,
     info,
+    nonnegative_float,
+    odd_int,
     open_input,
+    positive_float,
     progress_for,
     warn,
 )
@@ -24,12 +27,14 @@ def add_detection_options(parser: argparse.ArgumentParser) -> None:
                        help="region analysed: centre[:FRACTION] leaves out the centre where the subject usually is "
                             "(default centre = centre:0.5), auto leaves out textured pixels, all, or a mask image "
                             "(non-zero = analysed)")
-    group.add_argument("--q", type=int, default=9, help="median kernel size, odd (default 9)")
+    group.add_argument("--q", type=odd_int, default=9,
+                       help="median kernel size, odd (default 9); the memory it needs is estimated before the images "
+                            "are read and refused above FORENSICS_MEMORY_LIMIT")
     thr = group.add_mutually_exclusive_group()
-    thr.add_argument("--sigma", type=float, default=None,
+    thr.add_argument("--sigma", type=positive_float, default=None,
                      help="threshold τ = median + SIGMA·1.4826·MAD of d̂ (default 5)")
-    thr.add_argument("--tau", type=float, default=None, help="threshold τ on d̂ in DN, instead of --sigma")
-    group.add_argument("--stuck-tolerance", type=float, default=0.0,
+    thr.add_argument("--tau", type=positive_float, default=None, help="threshold τ on d̂ in DN, instead of --sigma")
+    group.add_argument("--stuck-tolerance", type=nonnegative_float, default=0.0,
                        help="largest max − min (DN) still 'the same value in every image' (default 0; raise for "
                             "compressed or noisy data)")
 
@@ -59,7 +64,7 @@ def register(sub) -> None:
     add_input_options(det)
     add_execution_options(det)
     add_output_options(det)
-    det.set_defaults(handler=run_detect)
+    det.set_defaults(handler=run_detect, inputs=("set", "--mask"), outputs=("--report",))
 
     gro = command_parser(
         inner, "growth", "estimate defect growth rates from sets of one device taken at different dates",
@@ -74,7 +79,7 @@ def register(sub) -> None:
     add_input_options(gro)
     add_execution_options(gro)
     add_output_options(gro)
-    gro.set_defaults(handler=run_growth)
+    gro.set_defaults(handler=run_growth, inputs=("sets", "--mask"), outputs=("--output", "--report"))
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
 

@@ -21,6 +21,7 @@ from forensics.cli.common import (
     progress_for,
     warn,
 )
+from forensics.cli.common import finite_float, positive_float  # option types: values checked where parsed
 
 
 def register(sub) -> None:
@@ -35,7 +36,8 @@ def register(sub) -> None:
         fill("Maximum-likelihood fingerprint K = Σ W·I / Σ I² from the wavelet noise residuals W of every image in SET "
         "(streamed: one image in memory at a time; saturated pixels excluded), then zero-mean and DFT Wiener "
         "filtering.  20–50 bright, flat, unsaturated images (sky, wall, flat field) give the best fingerprint.  "
-        "All images must have one size and orientation.  The images are summed in chunks on local worker "
+        "All images must have one size and orientation; content-free ones (constant, black or saturated) are "
+        "left out with a warning.  The images are summed in chunks on local worker "
         "processes (or a Dask cluster); the result does not depend on how many.  An interrupted build resumes "
         "from the chunks kept in .FP.partial/ beside the output when run again.", 100))
     build.add_argument("set", metavar="SET", help="dataset folder (images, optional manifest.csv)")
@@ -43,12 +45,12 @@ def register(sub) -> None:
     build.add_argument("--region", default="full",
                        help="'full' (default), 'center:N' (centred N×N crop), or 'corners' (the paper's four "
                             "128×128 corner patches; 'corners:N' for N×N)")
-    build.add_argument("--sigma", type=float, default=3.0,
+    build.add_argument("--sigma", type=positive_float, default=3.0,
                        help="noise level of the wavelet denoiser on an 8-bit scale (default 3, the reference's)")
     add_input_options(build)
     add_execution_options(build)
     add_output_options(build, report=False)
-    build.set_defaults(handler=run_build)
+    build.set_defaults(handler=run_build, inputs=("set",), outputs=("--output",))
 
     match = command_parser(
         inner, "match", "score each image of a set against a fingerprint, with a decision",
@@ -60,16 +62,16 @@ def register(sub) -> None:
     match.add_argument("fingerprint", metavar="FP", help="fingerprint file written by 'fingerprint build'")
     match.add_argument("set", metavar="SET", help="dataset folder of the images to score")
     match.add_argument("--metric", choices=["pce", "ncc"], default="pce", help="score (default pce)")
-    match.add_argument("--threshold", type=float, default=None,
+    match.add_argument("--threshold", type=finite_float, default=None,
                        help="decide 'match' when the score reaches it (default: 60 for PCE, none for NCC)")
     match.add_argument("--shift-range", type=_shift_range, default=0, metavar="R",
                        help="PCE only: search shifts up to ±R pixels (default 0: zero shift; 'all': every circular "
                             "shift, which inflates non-matching PCE)")
-    match.add_argument("--sigma", type=float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
+    match.add_argument("--sigma", type=positive_float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
     add_input_options(match)
     add_execution_options(match)
     add_output_options(match)
-    match.set_defaults(handler=run_match)
+    match.set_defaults(handler=run_match, inputs=("fingerprint", "set"), outputs=("--report",))
     _register_db(inner)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
@@ -109,7 +111,7 @@ def _register_db(inner: Any) -> None:
     add.add_argument("--serial", metavar="S", help="body serial number (only with one FP; default: from EXIF)")
     add.add_argument("--replace", action="store_true", help="replace devices already in the database")
     _db_output_options(add)
-    add.set_defaults(handler=run_db_add)
+    add.set_defaults(handler=run_db_add, inputs=("fingerprints",), outputs=("database",))
 
     lister = command_parser(sub, "list", "list the devices of a database",
                             "forensics fingerprint db list cameras/ --json",
@@ -117,7 +119,7 @@ def _register_db(inner: Any) -> None:
                             "and quality (effective number of images; higher is better).  --json gives every field.")
     lister.add_argument("database", metavar="DB", help="database folder")
     _db_output_options(lister)
-    lister.set_defaults(handler=run_db_list)
+    lister.set_defaults(handler=run_db_list, inputs=("database",), outputs=())
 
     remove = command_parser(sub, "remove", "remove a device from a database",
                             "forensics fingerprint db remove cameras/ 'Nikon D70 #0'",
@@ -125,7 +127,7 @@ def _register_db(inner: Any) -> None:
     remove.add_argument("database", metavar="DB", help="database folder")
     remove.add_argument("device", metavar="ID", help="device id (as 'db list' shows it)")
     _db_output_options(remove)
-    remove.set_defaults(handler=run_db_remove)
+    remove.set_defaults(handler=run_db_remove, inputs=(), outputs=("database",))
     db.set_defaults(handler=lambda args: db.print_help() or 2)
 
 
@@ -148,18 +150,19 @@ def run_build(args: argparse.Namespace) -> int:
 
     region = parse_region(args.region)
     out = Path(args.output)
-    refuse_existing(out, args.force)  # before hours of work, not after
+    refuse_existing(out, args.force, file=True)  # before hours of work, not after
     ds = open_input(args, args.set)
     info(args, f"building a fingerprint from {len(ds)} images of {ds.root} ({region.spec}) …")
     # Finished chunks are kept in .FP.partial beside the output until it is written: an interrupted build resumes.
     partial = out.with_name(f".{out.name}.partial")
-    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma),
-                                                        args.force) as checkpoint:
+    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma), args.force,
+                                                        inputs=[f.path for f in ds.frames]) as checkpoint:
         fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), executor=ex,
-                               checkpoint=checkpoint)
+                               checkpoint=checkpoint, name=str(ds.root))
         fp.save(out, force=args.force)
         execution = ex.info().to_dict()
     excluded = fp.parameters.get("excluded_pixel_fraction", 0.0)
+    _warn_content_free(fp.parameters.get("excluded_frames", []), len(ds), str(ds.root))
     if fp.n_images < 10:
         warn(f"only {fp.n_images} images: a fingerprint from fewer than about 20 is noisy and matches weakly")
 
@@ -175,6 +178,13 @@ def run_build(args: argparse.Namespace) -> int:
     emit(args, summary, lambda: {"output": str(out), **fp.to_dict(), "k_std": float(fp.K.std()),
                                  "execution": execution})
     return 0
+
+
+def _warn_content_free(frames: list[dict[str, str]], total: int, where: str) -> None:
+    """One warning for the content-free frames a build or a scoring left out (the first one's reason)."""
+    if frames:
+        warn(f"{len(frames)} of {total} frames of {where} are content-free and were left out (first, "
+             f"{frames[0]['file']}: {frames[0]['reason']})")
 
 
 def _build_config(ds: Any, region: Any, sigma: float) -> dict[str, Any]:
@@ -207,6 +217,7 @@ def run_match(args: argparse.Namespace) -> int:
         result = match_set(fp, ds, args.metric, threshold=args.threshold, shift_range=args.shift_range,
                            sigma=args.sigma, progress=progress_for(args), name=str(args.fingerprint), executor=ex)
         execution = ex.info().to_dict()
+    _warn_content_free([{"file": r["file"], "reason": r["excluded"]} for r in result.excluded], len(ds), str(ds.root))
     payload = result.to_dict()
 
     def summary() -> str:
@@ -240,6 +251,10 @@ def _match_table(payload: dict[str, Any]) -> str:
     cols += f"  {'rot':>3}  decision"
     lines = [head, cols]
     for r in payload["scores"]:
+        if r.get("excluded") is not None:  # not scored: no number to show
+            lines.append(f"{r['file']:<{width}}  {'—':>10}" + (f"  {'—':>8}  {'—':>8}" if metric == "pce" else "")
+                         + f"  {'':>3}  content-free")
+            continue
         line = f"{r['file']:<{width}}  {r['score']:>10.4g}"
         if metric == "pce":
             p = r["pce"] or {}
@@ -293,8 +308,8 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     """
     import os
     import shutil
-    import tempfile
 
+    from forensics._shared.atomic import mkdtemp_like_mkdir
     from forensics.prnu.database import FingerprintDatabase
 
     def add(db: FingerprintDatabase) -> tuple[list[Any], set[str], int]:
@@ -306,7 +321,7 @@ def _add_to_database(args: argparse.Namespace, folder: Path, files: list[Path]) 
     if folder.exists():
         return add(FingerprintDatabase(folder, create=True))  # an empty folder becomes a database
     folder.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
+    stage = mkdtemp_like_mkdir(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent)  # umask mode
     try:
         result = add(FingerprintDatabase(stage, create=True))
         try:

@@ -19,6 +19,7 @@ from forensics.cli.common import (
     open_input,
     progress_for,
 )
+from forensics.cli.common import positive_float  # option types: values checked where parsed
 
 
 def register(sub) -> None:
@@ -30,10 +31,12 @@ def register(sub) -> None:
              "frame), over a grid of scales with --scales for resized or digitally zoomed images, and in the "
              "orientations of --rotations.  The PCE's energy is taken over the shifts of the peak's 8×8 block phase "
              "(JPEG blocks make the null variance depend on it).  The best device is attributed when its "
-             "false-alarm probability, corrected (Šidák) for the number of fingerprints, positions, scales and "
-             "rotations searched, is at most --pfa; otherwise the image is 'unknown'.  For large databases a "
-             "compressed pre-screen (random projections) narrows the candidates of full-frame images first "
-             "(--prescreen).", 100))
+             "false-alarm probability, corrected (weighted Šidák) for the number of fingerprints, positions, scales "
+             "and rotations searched, is at most --pfa; 'ambiguous' when several devices reach it; otherwise the "
+             "image is 'unknown'.  Same-size images at zero shift and crop/scale searches of other sensor sizes "
+             "each get half of the false-alarm budget (both shown).  Content-free images (constant, black or "
+             "saturated) are 'excluded'.  For large databases a compressed pre-screen (random projections) narrows "
+             "the candidates of full-frame images first (--prescreen).", 100))
     parser.add_argument("set", metavar="SET", help="dataset folder of the images to identify")
     parser.add_argument("--db", required=True, metavar="DB", help="fingerprint database folder ('fingerprint db add')")
     parser.add_argument("--top", type=int, default=3, metavar="K", help="candidates listed per image (default 3)")
@@ -51,11 +54,12 @@ def register(sub) -> None:
     parser.add_argument("--prescreen", choices=["auto", "on", "off"], default="auto",
                         help="compressed pre-screen of full-frame images: 'auto' (on above 50 fingerprints), 'on', "
                              "'off' (default auto)")
-    parser.add_argument("--sigma", type=float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
+    parser.add_argument("--sigma", type=positive_float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
     add_input_options(parser)
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("set", "--db"), outputs=("--report",))
+
 
 
 def run(args: argparse.Namespace) -> int:
@@ -106,7 +110,7 @@ def summary(result: Any, db: str) -> str:
         best, second = q.best, q.runner_up
         rows.append([
             q.source,
-            best.device_id if best else "—",
+            (" = ".join(q.matches) if q.decision == "ambiguous" else best.device_id) if best else "—",
             f"{best.pce:.1f}" if best else "—",
             _fmt_p(q.p_fa, q.log10_p_fa) if best else "—",
             f"{q.pce_threshold:.1f}" if math.isfinite(q.pce_threshold) else "—",
@@ -124,9 +128,28 @@ def summary(result: Any, db: str) -> str:
     lines = [head, line(header)] + [line(r) for r in rows]
     counts = result.counts()
     per_device = ", ".join(f"{d} {k}" for d, k in sorted(counts.items())) or "none"
-    lines.append(f"{result.n_attributed} attributed, {n - result.n_attributed} unknown; per device: {per_device}")
+    others = "".join(f", {result.n_decided(d)} {d}" for d in ("ambiguous", "excluded") if result.n_decided(d))
+    lines.append(f"{result.n_attributed} attributed, {result.n_decided('unknown')} unknown{others}; per device: "
+                 f"{per_device}")
     lines.append("'needed': the PCE the best device needed at this p_FA for this image (it grows with the search).")
+    lines += _budget_lines(result.queries)
+    lines += [f"{q.source}: {q.note}" for q in result.queries if q.decision in ("ambiguous", "excluded")]
     return "\n".join(lines)
+
+
+def _budget_lines(queries: list[Any]) -> list[str]:
+    """The split of the false-alarm budget between aligned and searched positions, once per distinct split."""
+    splits: dict[tuple[Any, ...], int] = {}
+    for q in queries:
+        b = q.budget
+        if b and b["aligned"]["n_tests"] and b["searched"]["n_tests"]:
+            key = tuple((b[k]["n_tests"], b[k]["share"], b[k]["pce_threshold"]) for k in ("aligned", "searched"))
+            splits[key] = splits.get(key, 0) + 1
+    lines = []
+    for ((n_al, s_al, t_al), (n_se, s_se, t_se)), count in splits.items():
+        lines.append(f"false-alarm budget ({count} image(s)): aligned {100 * s_al:g} % over {n_al:,} test(s), PCE ≥ "
+                     f"{t_al:.1f}; crop/scale search {100 * s_se:g} % over {n_se:,} position(s), PCE ≥ {t_se:.1f}")
+    return lines
 
 
 

@@ -12,7 +12,10 @@ from forensics.cli.common import (
     executor_for,
     info,
     open_input,
+    positive_int,
     progress_for,
+    seed,
+    years,
 )
 
 
@@ -32,33 +35,33 @@ def register(sub) -> None:
     parser.add_argument("--sensors", default="A,B,C,D,E,F,G,H",
                         help="comma list of presets A–H, a preset with a rate factor (H*100), or sensor.json files "
                              "(default A,B,C,D,E,F,G,H)")
-    parser.add_argument("--years", default="0:96:8", help="ages START:STOP:STEP or a list (default 0:96:8)")
+    parser.add_argument("--years", type=years, default="0:96:8",
+                        help="ages START:STOP:STEP or a list (default 0:96:8); at most 1,000 unless "
+                             "FORENSICS_MAX_AGES allows more")
     parser.add_argument("--matcher", action="append", metavar="NAME",
                         help="matcher (repeatable; default: masek and ko)")
     parser.add_argument("--protocol", choices=["same-age", "enrol-0", "both"], default="both",
                         help="comparison protocol (default both)")
-    parser.add_argument("--impostors", type=int, metavar="N",
+    parser.add_argument("--impostors", type=positive_int, metavar="N",
                         help="score a uniform random sample of N impostor pairs (the same at every age) instead of all")
-    parser.add_argument("--boot", type=int, default=1000, help="class-bootstrap replicates (default 1000)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the sensors' histories and the bootstrap (default 0)")
+    parser.add_argument("--boot", type=positive_int, default=1000, help="class-bootstrap replicates (default 1000)")
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the sensors' histories and the bootstrap (default 0)")
     parser.add_argument("--checkpoint", metavar="DIR",
                         help="keep finished (sensor, age) results in DIR; a rerun with the same settings resumes")
     add_input_options(parser)
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("src", "--sensors", "--matcher"), outputs=("--report", "--checkpoint"))
 
 
 def run(args: argparse.Namespace) -> int:
     from forensics._shared.errors import UsageError
     from forensics.impact.experiment import PROTOCOLS, parse_sensors, run_impact
     from forensics.impact.matchers import load_matchers
-    from forensics.sensor.simulate import parse_years, source_bit_depth
+    from forensics.sensor.simulate import check_ageing_request, source_bit_depth
 
     if args.boot < 100:
         raise UsageError("--boot: use at least 100 replicates for a 95 % interval")
-    if args.impostors is not None and args.impostors < 1:
-        raise UsageError("--impostors must be at least 1")
     if args.report and not args.force:
         from forensics._shared.atomic import refuse_existing
 
@@ -67,7 +70,9 @@ def run(args: argparse.Namespace) -> int:
     shape = source.shape()[:2]
     bits = source_bit_depth(source.frames[0].info().dtype)
     sensors = parse_sensors(args.sensors, shape, bits)
-    ages = parse_years(args.years)
+    ages = args.years
+    for sensor in sensors:
+        check_ageing_request(sensor.model, ages, f"sensor {sensor.name}")
     matchers = load_matchers(args.matcher or ["masek", "ko"])
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
     with executor_for(args) as ex:

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
+from forensics._shared.text import printable
 from forensics.cli.common import add_input_options, add_output_options, command_parser, emit, open_input
 
 
@@ -15,16 +17,18 @@ def register(sub) -> None:
     parser.add_argument("path", help="dataset folder or image file")
     add_input_options(parser)
     add_output_options(parser, report=False)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("path",), outputs=())
 
 
 def run(args: argparse.Namespace) -> int:
     from forensics.io.describe import summarize_dataset, summarize_file
 
     path = Path(args.path)
-    if path.is_file():
+    # File names, EXIF strings and manifest fields are untrusted: escaped before they reach the terminal.
+    if os.path.lexists(path) and not path.is_dir():  # a file, or something posing as one: described or refused
         data = summarize_file(path)
-        emit(args, lambda: "\n".join(f"{k:>12}: {v}" for k, v in data.items() if v not in (None, {}, [])), data)
+        emit(args, lambda: printable("\n".join(f"{k:>12}: {v}" for k, v in data.items() if v not in (None, {}, []))),
+             data)
         return 0
     summary = summarize_dataset(open_input(args, path))
 
@@ -42,5 +46,5 @@ def run(args: argparse.Namespace) -> int:
             lines.append(f"{len(s.conditions)} acquisition conditions (exposure, ISO, temperature, subject)")
         return "\n".join(lines)
 
-    emit(args, text, summary.to_dict())
+    emit(args, lambda: printable(text()), summary.to_dict())
     return 0

@@ -14,7 +14,9 @@ from forensics.cli.common import (
     executor_for,
     info,
     open_input,
+    positive_int,
     progress_for,
+    seed,
 )
 
 
@@ -28,7 +30,7 @@ def register(sub) -> None:
     effects = command_parser(inner, "effects", "list every effect: physics, parameters, needed manifest fields",
                              "forensics model effects")
     effects.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
-    effects.set_defaults(handler=run_effects)
+    effects.set_defaults(handler=run_effects, inputs=(), outputs=())
 
     check = command_parser(
         inner, "check", "fit the sensor model to a dataset, show where it fails and name the missing effect",
@@ -47,10 +49,10 @@ def register(sub) -> None:
     check.add_argument("--add", action="append", default=[], metavar="EFFECT",
                        help="add an effect: a name from 'forensics model effects', module:Class or "
                             "path/to/file.py:Class (repeatable)")
-    check.add_argument("--seed", type=int, default=0, help="seed of the Monte-Carlo simulations (default 0)")
+    check.add_argument("--seed", type=seed, default=0, help="seed of the Monte-Carlo simulations (default 0)")
     check.add_argument("--auto", action="store_true",
                        help="forward selection: add flagged candidates one at a time until nothing is flagged")
-    check.add_argument("--max-steps", type=int, default=None, metavar="N",
+    check.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
                        help="with --auto: add at most N effects (default 5)")
     check.add_argument("--region", default=None, metavar="TOP,LEFT,HEIGHT,WIDTH",
                        help="check only this part of every frame (pixels; a single number N: the central N×N); "
@@ -58,7 +60,7 @@ def register(sub) -> None:
     add_input_options(check)
     add_execution_options(check)
     add_output_options(check)
-    check.set_defaults(handler=run_check)
+    check.set_defaults(handler=run_check, inputs=("data", "--add"), outputs=("--report",))
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
 

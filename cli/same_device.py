@@ -18,6 +18,7 @@ from forensics.cli.common import (
     progress_for,
     warn,
 )
+from forensics.cli.common import seed  # option types: values checked where parsed
 
 
 def register(sub) -> None:
@@ -41,7 +42,7 @@ def register(sub) -> None:
     parser.add_argument("--region", default="corners",
                         help="where the fingerprint is taken: 'corners' (default: the paper's four 128×128 corner "
                              "patches; 'corners:N'), 'center:N', or 'full'")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random selections and bootstraps (default 0)")
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the random selections and bootstraps (default 0)")
     parser.add_argument("--bootstrap", type=int, default=1000, metavar="B",
                         help="bootstrap replicates for the intervals (default 1000)")
     parser.add_argument("--ageing-fingerprints", type=int, default=16, metavar="N",
@@ -53,7 +54,7 @@ def register(sub) -> None:
     add_input_options(parser)
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("set_a", "set_b"), outputs=("--report",))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from forensics.cli.common import add_output_options, command_parser, emit, progress_for
+from forensics.cli.common import add_output_options, command_parser, emit, progress_for, seed
 
 
 def register(inner) -> None:
@@ -21,7 +21,7 @@ def register(inner) -> None:
                         help="prnu, dark_current, gain, nonlinearity, shot_noise, clusters, accelerating_growth, "
                              "dsnu, none, module:Class or path/to/file.py:Class; several: comma-separated or repeated")
     parser.add_argument("out", help="output folder (created; refused if it exists unless --force)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the device and the frames' noise (default 0)")
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the device and the frames' noise (default 0)")
     from forensics.fixtures.hidden import CONVENTIONS
 
     parser.add_argument("--convention", default="project", choices=list(CONVENTIONS), metavar="NAME",
@@ -32,7 +32,7 @@ def register(inner) -> None:
                             f"{d.rates[1] / sum(d.rates):.2g}, ISO gain {d.iso_gain}, {len(d.ages)} epochs)"
                             for n, d in CONVENTIONS.items()) + ". Default project; truth.json records it")
     add_output_options(parser, report=False)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=("effect",), outputs=("out",))
 
 
 def run(args: argparse.Namespace) -> int:

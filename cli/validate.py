@@ -9,8 +9,12 @@ from forensics.cli.common import (
     command_parser,
     emit,
     executor_for,
+    frame_size,
     info,
+    nonnegative_float,
+    positive_int,
     progress_for,
+    seed,
 )
 
 
@@ -25,18 +29,19 @@ def register(sub) -> None:
         "figure is missed.")
     parser.add_argument("what", choices=["defects", "dating"], help="which estimators to validate")
     parser.add_argument("--sensor", default="F", help="paper preset A–H (default F)")
-    parser.add_argument("--trials", type=int, default=100, help="number of trials (default 100; ≥ 400 for the "
+    parser.add_argument("--trials", type=positive_int, default=100, help="number of trials (default 100; ≥ 400 for the "
                                                                 "acceptance figures)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--size", default="128x128", help="WIDTHxHEIGHT of the simulated frames (default 128x128)")
-    parser.add_argument("--images", type=int, default=50, help="images per epoch, K (default 50)")
+    parser.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
+    parser.add_argument("--size", type=frame_size, default="128x128",
+                        help="WIDTHxHEIGHT of the simulated frames (default 128x128)")
+    parser.add_argument("--images", type=positive_int, default=50, help="images per epoch, K (default 50)")
     parser.add_argument("--bits", type=int, choices=[8, 16], default=16, help="bit depth (default 16)")
-    parser.add_argument("--read-noise", type=float, default=40.0, help="read noise σ in DN (default 40)")
+    parser.add_argument("--read-noise", type=nonnegative_float, default=40.0, help="read noise σ in DN (default 40)")
     parser.add_argument("--scenes", choices=["smooth", "mixed", "photo", "texture"], default="smooth",
                         help="scene pool: smooth low-texture scenes (default) or the toolkit's scene kinds")
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, inputs=(), outputs=("--report",))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,24 +49,18 @@ def run(args: argparse.Namespace) -> int:
     from forensics._shared.errors import UsageError
     from forensics.sensor.presets import PRESETS
     from forensics.report.validate import validation_report
-    from forensics.validate.trials import ValidationSettings, validate_dating, validate_defects
+    from forensics.validate.trials import ValidationSettings, check_request, validate_dating, validate_defects
 
-    from forensics.cli.simulate import parse_size
-
-    if args.trials < 1:
-        raise UsageError("--trials must be at least 1")
     if args.sensor.upper() not in PRESETS:
         raise UsageError(f"unknown sensor preset '{args.sensor}'; choose one of {', '.join(PRESETS)}")
     if args.report:
         refuse_existing(args.report, args.force)
-    try:
-        shape = parse_size(args.size)
-    except argparse.ArgumentTypeError as exc:
-        raise UsageError(str(exc)) from None
+    shape = args.size
     settings = ValidationSettings(sensor=args.sensor.upper(), shape=shape, bit_depth=args.bits,
                                   read_noise=args.read_noise, images=args.images, scenes=args.scenes)
     fn = validate_defects if args.what == "defects" else validate_dating
     with executor_for(args) as ex:
+        check_request(settings, ex.info().workers)
         result = fn(settings, args.trials, rng=args.seed, progress=progress_for(args), executor=ex)
         execution = ex.info()
 

@@ -17,3 +17,4 @@ One subpackage per domain; each lists its public names in ``__all__``:
 Subpackages are imported on demand (``import forensics.prnu``); importing ``forensics`` alone is cheap.
 """
 __version__ = "0.1.0"
+__all__ = ["__version__"]

@@ -2,12 +2,15 @@
 
 A command asked for something enormous — a median window of 99,999 pixels, a 100,000 × 100,000 scene, a
 million ages, a small PNG that decodes to gigabytes — must say so before it allocates, not be killed by the
-kernel half-way with its outputs half-written.  Two limits, each overridable by an environment variable:
+kernel half-way with its outputs half-written.  Three limits, each overridable by an environment variable:
 
 * :func:`memory_limit` — the working memory one step of a command may ask for
   (``FORENSICS_MEMORY_LIMIT``, e.g. ``64G``; default 80 % of this machine's physical memory);
 * :func:`pixel_limit` — the pixels of one decoded image (``FORENSICS_MAX_PIXELS``, default 400 million:
-  above the largest single sensors made, below what a decompression bomb asks for).
+  above the largest single sensors made, below what a decompression bomb asks for);
+* :func:`age_limit` — the sample ages one request may ask for (``FORENSICS_MAX_AGES``, default 1,000):
+  every age is a folder of images (``simulate age``) or a round of the experiment (``impact``), so
+  ``--years 0:1e6:1`` would make a million of them; the paper's designs use 13.
 
 Examples
 --------
@@ -25,6 +28,8 @@ from forensics._shared.errors import InputError, UsageError
 MEMORY_ENV = "FORENSICS_MEMORY_LIMIT"
 PIXELS_ENV = "FORENSICS_MAX_PIXELS"
 DEFAULT_MAX_PIXELS = 400_000_000
+AGES_ENV = "FORENSICS_MAX_AGES"
+DEFAULT_MAX_AGES = 1_000
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
 
@@ -68,6 +73,34 @@ def pixel_limit() -> int:
     if value < 1:
         raise UsageError(f"{PIXELS_ENV}={text}: must be at least 1")
     return value
+
+
+def age_limit() -> int:
+    """The most sample ages one request may ask for: ``FORENSICS_MAX_AGES`` if set, else 1,000."""
+    text = os.environ.get(AGES_ENV)
+    if not text:
+        return DEFAULT_MAX_AGES
+    try:
+        value = int(float(text))
+    except (ValueError, OverflowError):
+        raise UsageError(f"{AGES_ENV}={text}: not a number of ages (e.g. 5000)") from None
+    if value < 1:
+        raise UsageError(f"{AGES_ENV}={text}: must be at least 1")
+    return value
+
+
+def require_ages(n_ages: float, what: str) -> None:
+    """Raise :class:`UsageError` if a request for ``n_ages`` sample ages exceeds :func:`age_limit`.
+
+    ``n_ages`` may be a float (``inf`` included), so that it can be checked before a list is built.
+    """
+    limit = age_limit()
+    if not n_ages <= limit:
+        finite = n_ages < 1e15
+        count = f"{n_ages:,.0f}" if finite else f"{n_ages:.3g}"
+        raise UsageError(f"{what} asks for {count} ages, more than the limit of {limit:,} (each age is a "
+                         f"folder of images or a round of the experiment); ask for fewer, or if you mean it, "
+                         f"raise the limit with {AGES_ENV} (e.g. {AGES_ENV}={int(n_ages) if finite else limit * 10})")
 
 
 def _gib(nbytes: float) -> str:

@@ -25,8 +25,13 @@ device, a fingerprint) is ``shared``: shipped once per worker process (processes
 
 Faults: a worker process that dies costs only the items in flight, which are resubmitted (up to
 ``retries`` times each); Dask reschedules a lost worker's tasks itself.  A run interrupted as a whole
-resumes from its completed items when given a :class:`Checkpoint` (one file per finished item, written
-atomically, beside the output), and gives the same result as an uninterrupted run.
+resumes from its completed items when given a :class:`~forensics._shared.checkpoint.Checkpoint` (one file
+per finished item, written atomically, beside the output), and gives the same result as an uninterrupted run.
+
+Lifetime: local workers see exactly the driver's ``sys.path`` (wherever the command runs, the source
+checkout included) and its umask; they ignore Ctrl-C (the driver stops them), are stopped at once when a
+map is interrupted, and end by themselves when the driver's process ends, however it ends
+(:mod:`forensics._shared.lifetime`): no orphans.
 
 Inner parallelism (FFT and wavelet threads) is limited to the cores left per worker:
 :func:`thread_budget`.
@@ -34,13 +39,11 @@ Inner parallelism (FFT and wavelet threads) is limited to the cores left per wor
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
 import os
 import pickle
-import shutil
+import signal
 import sys
-import tempfile
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -48,7 +51,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+from forensics._shared import safecodec
+from forensics._shared.atomic import current_umask
+from forensics._shared.checkpoint import (  # noqa: F401 — part of this module's interface since it began
+    Checkpoint,
+    config_digest,
+    resumable_checkpoint,
+    resumable_directory,
+)
 from forensics._shared.errors import UsageError
+from forensics._shared.lifetime import exit_with
 from forensics._shared.progress import Progress, no_progress
 
 T = TypeVar("T")
@@ -81,146 +93,6 @@ def thread_budget(cap: int = 4) -> int:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Checkpoints
-# --------------------------------------------------------------------------------------------------------------
-
-
-class Checkpoint:
-    """Completed items of one run, one pickle per item, so that an interrupted run resumes where it stopped.
-
-    Parameters
-    ----------
-    folder
-        Where the item files live (created).  Conventionally beside the output: ``.OUT.partial/``.
-    config
-        Everything that determines the items' results (inputs, parameters, seed, code version), as JSON.
-        A folder made with another ``config`` is refused, so a resumed run can never mix two settings.
-
-    Item files are written atomically (temporary sibling, then rename): an item is either complete or
-    absent, whatever killed the run.
-    """
-
-    def __init__(self, folder: str | os.PathLike, config: dict[str, Any]) -> None:
-        self.folder = Path(folder)
-        self.config = json.loads(json.dumps(config, sort_keys=True, default=str))
-        self.folder.mkdir(parents=True, exist_ok=True)
-        stamp = self.folder / "config.json"
-        if stamp.exists():
-            try:
-                old = json.loads(stamp.read_text())
-            except (OSError, ValueError):
-                old = None
-            if old != self.config:
-                raise UsageError(f"{self.folder}: holds a run made with other settings; rerun with those settings to "
-                                 "resume, or remove the folder to start again")
-        else:
-            _atomic_write_bytes(stamp, json.dumps(self.config, indent=2, sort_keys=True).encode())
-
-    def _path(self, key: str) -> Path:
-        return self.folder / f"item-{key}.pkl"
-
-    def has(self, key: str) -> bool:
-        return self._path(key).exists()
-
-    def load(self, key: str) -> Any:
-        with open(self._path(key), "rb") as handle:
-            return pickle.load(handle)
-
-    def save(self, key: str, value: Any) -> None:
-        _atomic_write_bytes(self._path(key), pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
-
-    def completed(self) -> int:
-        """Number of finished items on disk."""
-        return sum(1 for _ in self.folder.glob("item-*.pkl"))
-
-
-def _matches(folder: Path, config: dict[str, Any]) -> bool:
-    """Whether the checkpoint in ``folder`` (if any) was made with ``config``."""
-    try:
-        Checkpoint(folder, config)
-    except UsageError:
-        return False
-    return True
-
-
-@contextlib.contextmanager
-def resumable_checkpoint(folder: str | os.PathLike, config: dict[str, Any], force: bool = False
-                         ) -> Iterator[Checkpoint]:
-    """A :class:`Checkpoint` in ``folder`` for the duration of one run that must survive interruption.
-
-    A folder left by a run with other settings is refused (replaced with ``force``).  On success the folder
-    is removed; an interruption or a crash leaves it for the next run to resume from; errors in the input
-    (:class:`~forensics._shared.errors.InputError`, :class:`UsageError`) cannot be resumed and remove it.
-    """
-    from forensics._shared.errors import InputError
-
-    folder = Path(folder)
-    if force and folder.exists() and not _matches(folder, config):
-        shutil.rmtree(folder)
-    checkpoint = Checkpoint(folder, config)
-    try:
-        yield checkpoint
-    except (InputError, UsageError):
-        shutil.rmtree(folder, ignore_errors=True)
-        raise
-    shutil.rmtree(folder, ignore_errors=True)
-
-
-@contextlib.contextmanager
-def resumable_directory(out: str | os.PathLike, config: dict[str, Any], force: bool = False
-                        ) -> Iterator[tuple[Path, Checkpoint]]:
-    """An output folder built in a fixed working folder beside it (``.OUT.partial``) that survives interruption.
-
-    Yields ``(work, checkpoint)``: write the outputs into ``work`` and record each finished item in
-    ``checkpoint`` (:func:`resumable_checkpoint` in ``work/.items``).  On success ``work`` is renamed onto
-    ``out`` (replacing it only with ``force``), so the output appears whole or not at all.  After an
-    interruption the same call resumes from the finished items; errors in the input remove the working folder.
-    """
-    from forensics._shared.atomic import move_directory_into_place, refuse_existing
-    from forensics._shared.errors import InputError
-
-    out = refuse_existing(out, force)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    work = out.with_name(f".{out.name}.partial")
-    if force and work.exists() and not _matches(work / ".items", config):
-        shutil.rmtree(work)  # another run's files, not only its checkpoint
-    work.mkdir(exist_ok=True)
-    try:
-        with resumable_checkpoint(work / ".items", config) as checkpoint:
-            yield work, checkpoint
-    except (InputError, UsageError):
-        shutil.rmtree(work, ignore_errors=True)
-        raise
-    _sweep_partial_files(work)
-    move_directory_into_place(work, out)
-
-
-def _sweep_partial_files(folder: Path) -> None:
-    """Remove the temporary files of writes that never finished (``.NAME.XXXX.part…``, left by a worker killed
-    mid-write; the item was run again and wrote its file whole), so none reaches the finished output."""
-    for path in folder.rglob(".*.part*"):
-        if path.is_file():
-            path.unlink(missing_ok=True)
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def config_digest(config: dict[str, Any]) -> str:
-    """A short stable digest of a run's settings (for naming checkpoint folders)."""
-    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
-# --------------------------------------------------------------------------------------------------------------
 # Worker side
 # --------------------------------------------------------------------------------------------------------------
 
@@ -233,33 +105,70 @@ _WORKER_SHARED: dict[str, Any] = {}
 _BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+#: What the fork server's start changes in the environment, restored in every worker (see below).
+_PATH_VARIABLES = ("PYTHONPATH", "PYTHONSAFEPATH")
+
+
+def _server_environment() -> dict[str, str]:
+    """The environment the fork server starts with: single-threaded BLAS, and exactly this process's sys.path.
+
+    Multiprocessing starts the server with ``python -c``, which puts the *current folder* first on its
+    ``sys.path``.  Run from a source checkout of an installed (not editable) copy, the checkout's
+    ``forensics/`` (which lacks ``cli``, installed from ``cli/``) then shadows the installed package and every
+    worker dies unpickling its first item.  The server is given ``PYTHONSAFEPATH`` (no implicit folder) and
+    this process's own ``sys.path`` as ``PYTHONPATH`` — what the spawn start method passes as ``sys_path`` —
+    with relative entries made absolute (``''`` is this process's real use of its current folder).  ``site``
+    drops the duplicates that the default entries then make, so the order is this process's.
+    """
+    path = [os.path.abspath(entry) for entry in sys.path]
+    return {**{k: "1" for k in _BLAS_THREAD_VARIABLES}, "PYTHONSAFEPATH": "1", "PYTHONPATH": os.pathsep.join(path)}
+
+
 def _start_forkserver(context: Any) -> None:
-    """Start the fork server (once per process) with numpy preloaded and single-threaded BLAS.
+    """Start the fork server (once per process) with numpy preloaded, single-threaded BLAS and this sys.path.
 
     Workers fork from it in milliseconds instead of importing numpy and scipy each.  BLAS reads its thread
     count when it is loaded, so the variables are set only while the server starts (it inherits them) and
-    this process's own environment is restored at once.
+    this process's own environment is restored at once; the path variables are restored in each worker
+    (:func:`_init_process_worker`), so that programs a worker runs see the user's environment.
     """
     from multiprocessing import forkserver
 
     context.set_forkserver_preload(["numpy", "scipy.fft", "forensics._shared.parallel"])
-    saved = {k: os.environ.get(k) for k in _BLAS_THREAD_VARIABLES}
-    os.environ.update({k: "1" for k in _BLAS_THREAD_VARIABLES})
+    changes = _server_environment()
+    saved = {k: os.environ.get(k) for k in changes}
+    os.environ.update(changes)
     try:
         forkserver.ensure_running()
     finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        _restore_environment(saved)
 
 
-def _init_process_worker(threads: int, shared_blob: bytes | None) -> None:
+def _restore_environment(saved: dict[str, str | None]) -> None:
+    for key, value in saved.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+
+
+def _init_process_worker(threads: int, shared_blob: bytes | None, driver: int, umask: int,
+                         environ: dict[str, str | None]) -> None:
+    """Set up one worker process of the driver ``driver``: its lifetime, environment and shared object."""
+    exit_with(driver)  # no orphans: the worker ends when the driver's process does, even by SIGKILL
+    # Ctrl-C reaches the whole process group; the driver handles it and stops its workers, which would
+    # otherwise each print a traceback.  A handler, not SIG_IGN, which programs the worker runs would inherit.
+    signal.signal(signal.SIGINT, _ignore_signal)
+    os.umask(umask)  # files the worker writes get the driver's permissions (the server may predate a change)
+    _restore_environment(environ)
     os.environ[THREADS_ENV] = str(threads)
     _WORKER_SHARED.clear()
     if shared_blob is not None:
         _WORKER_SHARED["value"] = pickle.loads(shared_blob)
+
+
+def _ignore_signal(signum: int, frame: Any) -> None:
+    """Nothing: the worker carries on until its driver stops it."""
 
 
 def _run_process_item(fn: Callable[..., Any], item: Any, with_shared: bool) -> Any:
@@ -430,8 +339,20 @@ class Executor:
                 if next_index in done:
                     yield done.pop(next_index)
                 else:  # finished by an earlier, interrupted run
-                    yield checkpoint.load(keys[next_index])  # type: ignore[union-attr]
+                    yield stored(next_index)
                 next_index += 1
+
+        def stored(i: int) -> Any:
+            """Item ``i`` from the checkpoint; computed here if its file passed the check but does not decode."""
+            assert checkpoint is not None
+            try:
+                return checkpoint.load(keys[i])
+            except safecodec.Undecodable as exc:
+                warnings.warn(f"{checkpoint.folder}: item {keys[i]} does not decode ({exc}); computing it again",
+                              stacklevel=3)
+            value = fn(items[i]) if shared is _NO_SHARED else fn(shared, items[i])
+            checkpoint.save(keys[i], value)
+            return value
 
         yield from ready()
         for i, value in completions():
@@ -477,11 +398,12 @@ class Executor:
         context = multiprocessing.get_context("forkserver" if sys.platform.startswith("linux") else "spawn")
         if context.get_start_method() == "forkserver":
             _start_forkserver(context)
+        environ = {k: os.environ.get(k) for k in _PATH_VARIABLES}
         attempts = {i: 0 for i in todo}
         queue = list(todo)
         while queue:
             pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_process_worker,
-                                       initargs=(threads, blob))
+                                       initargs=(threads, blob, os.getpid(), current_umask(), environ))
             running: dict[Any, int] = {}
             broken = False
             try:
@@ -508,6 +430,9 @@ class Executor:
                         running.clear()
                         queue.sort()
                         break
+            except BaseException:  # interrupted (Ctrl-C, SIGTERM), an item failed, or the consumer stopped
+                _stop_workers(pool)
+                raise
             finally:
                 pool.shutdown(wait=not broken, cancel_futures=True)
 
@@ -547,6 +472,28 @@ class Executor:
             if "shared" in kwargs:
                 with contextlib.suppress(Exception):
                     client.cancel(kwargs["shared"])
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Stop the pool's worker processes now, whatever item they are running.
+
+    ``shutdown`` lets running items finish, which for a long item (a model check's measurement) means
+    minutes after the user asked to stop; their results would be thrown away.  A worker killed mid-write
+    leaves only a temporary ``.part`` file, which a resumed run sweeps.  ProcessPoolExecutor has no public
+    way to do this before Python 3.14 (``terminate_workers``); its ``_processes`` is the table it keeps.
+    """
+    terminate = getattr(pool, "terminate_workers", None)
+    if callable(terminate):
+        terminate()
+        return
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.join(5.0)
 
 
 def start_local_cluster(workers: int = 2) -> Any:

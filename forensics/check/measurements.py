@@ -346,11 +346,25 @@ class ConditionStats:
     lag: list[tuple[float, float] | None]  #: :func:`lag1_terms` of consecutive repeats, in frame order
     dtype: np.dtype  #: the first frame's pixel type
     scene: np.ndarray  #: :func:`~forensics.check.scene.scene_estimate` of the condition's mean
+    #: content-free frames left out (:mod:`forensics.io.content`): (position in the condition, file, why)
+    excluded: list[tuple[int, str, str]] = field(default_factory=list)
 
 
-def condition_stats(item: ConditionFrames) -> ConditionStats:
+@dataclass
+class EmptyCondition:
+    """A condition that content-free frames left with too few frames to measure (:func:`condition_stats`)."""
+
+    excluded: list[tuple[int, str, str]]
+    n_frames: int
+
+
+def condition_stats(item: ConditionFrames) -> ConditionStats | EmptyCondition:
     """Read one condition's frames (in order, decoding one ahead) and reduce them: the work item of
-    :func:`load_measurements` (module-level, so that workers import it by reference)."""
+    :func:`load_measurements` (module-level, so that workers import it by reference).
+
+    Content-free frames (constant, or clipped at the pixel type's floor or full scale: :func:`frame_problem`)
+    are left out before they reach any statistic; a condition left with too few frames is an
+    :class:`EmptyCondition`."""
     from forensics.io.images import read_image
 
     crop = item.crop
@@ -363,7 +377,14 @@ def condition_stats(item: ConditionFrames) -> ConditionStats:
     stacked_dtype = None  # what this condition's stack accumulates (set by its first frame)
     first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame's squared residual and block means
     dtype = None
-    for j, (name, img) in enumerate(zip(item.names, prefetch(read_image(p) for p in item.paths))):
+    excluded: list[tuple[int, str, str]] = []
+    j = -1  # position among the frames kept
+    for k, (name, img) in enumerate(zip(item.names, prefetch(read_image(p) for p in item.paths))):
+        problem = frame_problem(img[crop])
+        if problem is not None:  # clipped or constant: it would be taken for stuck pixels or a gain pattern
+            excluded.append((k, name, problem))
+            continue
+        j += 1
         dtype = img.dtype if dtype is None else dtype
         grey = grey_mean(img[crop], np.float64)
         stacked = _stackable(img[crop], grey, stacked_dtype)
@@ -390,12 +411,28 @@ def condition_stats(item: ConditionFrames) -> ConditionStats:
             if previous is not None:
                 lag.append(lag1_terms(previous, grey))
             previous = grey
+    if j + 1 < (2 if item.repeated else 1):
+        return EmptyCondition(excluded, len(item.paths))
     total = whole.result()
     scene = scene_estimate(total.mean.astype(np.float64))  # of the float64 mean, as the measurements hold it
     if not item.repeated:
-        return ConditionStats(total, None, None, scenes, found, None, None, lag, np.dtype(dtype), scene)
+        return ConditionStats(total, None, None, scenes, found, None, None, lag, np.dtype(dtype), scene, excluded)
     return ConditionStats(total, (halves[0].result(), halves[1].result()), resid.result().var, scenes, found, ms,
-                          np.array(frame_blocks), lag, np.dtype(dtype), scene)
+                          np.array(frame_blocks), lag, np.dtype(dtype), scene, excluded)
+
+
+def frame_problem(frame: np.ndarray) -> str | None:
+    """Why a frame holds nothing of the sensor for the check (:mod:`forensics.io.content`), or None.
+
+    The check knows no black level: a pixel at the pixel type's floor (0 for unsigned integers) or full scale
+    is clipped, and a frame with fewer than 1 % of its pixels strictly between them, or a constant one, is
+    content-free — its zero variance would be read as stuck pixels and its clipped level as a gain pattern.
+    """
+    from forensics.io.content import content_problem
+
+    dtype = np.asarray(frame).dtype
+    floor = float(np.iinfo(dtype).min) if dtype.kind in "ui" else -np.inf
+    return content_problem(frame, floor)
 
 
 def load_measurements(data: Dataset | str | Path, border: int | None = None, epoch_gap: float = 0.25,
@@ -478,7 +515,15 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
     lag = Lag1()
     blocks: list[np.ndarray] = []
     dtype = None
+    excluded: list[tuple[str, str]] = []  # content-free frames (file, why)
+    dropped: list[int] = []  # conditions content-free frames left too small
     for g, part in zip(groups, parts):
+        excluded += [(name, why) for _, name, why in part.excluded]
+        if isinstance(part, EmptyCondition):
+            dropped.append(g.index)
+            continue
+        gone = {k for k, _, _ in part.excluded}
+        g.frames = [f for k, f in enumerate(g.frames) if k not in gone]
         dtype = part.dtype if dtype is None else dtype  # the first frame's
         total = part.whole
         mean_all[g.index], var_all[g.index] = total.mean, total.var
@@ -512,6 +557,20 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
         half_ms = np.zeros((R, 2, *shp), np.float32)  # zero for conditions of repeats (not used there)
         for r, ms in photo_ms.items():
             half_ms[r] = ms
+    if excluded:
+        _refuse_content_free(ds, groups, dropped, excluded, notes)
+    if dropped:  # keep the conditions measured, renumbered (rare: only here are arrays copied)
+        keep = [g.index for g in groups if g.index not in dropped]
+        keep_r = [r for r, g in enumerate(repeated) if g not in dropped]
+        mean_all, var_all, lo, hi, scene_all, var_resid = (x[keep] for x in (mean_all, var_all, lo, hi, scene_all,
+                                                                             var_resid))
+        mean_a, mean_b, n_a, n_b = (x[keep_r] for x in (mean_a, mean_b, n_a, n_b))
+        half_ms = half_ms[keep_r] if half_ms is not None else None
+        renumber = {old: new for new, old in enumerate(keep)}
+        repeated = [renumber[g] for g in repeated if g not in dropped]
+        groups = [g for g in groups if g.index not in dropped]
+        for g in groups:
+            g.index = renumber[g.index]
     full_scale = infer_full_scale(np.dtype(dtype), max(0.0, float(hi.max())))
     border = SCENE_SIZE // 2 if border is None else int(border)
     interior = np.zeros(shp, bool)
@@ -521,8 +580,8 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
         notes.append(f"the frames saturate at {saturation:g} DN, below the full scale {full_scale:g} DN (a full well "
                      "reached before the converter's top): readouts that reached it are censored")
     meas = Measurements(ds.root, shp, full_scale, border, epoch_times, has_time, groups, mean_all, var_all, lo, hi,
-                        repeated, mean_a, mean_b, n_a, n_b, len(ds), notes=notes, var_resid=var_resid,
-                        half_ms=half_ms, scene_all=scene_all, saturation=saturation)
+                        repeated, mean_a, mean_b, n_a, n_b, len(ds) - len(excluded), notes=notes,
+                        var_resid=var_resid, half_ms=half_ms, scene_all=scene_all, saturation=saturation)
     jpeg = any(Path(f.file).suffix.lower() in JPEG_SUFFIXES for f in ds.frames)
     meas.traits = NoiseTraits(lag.result(), blocks, jpeg)
     return meas
@@ -568,6 +627,26 @@ def saturation_level(lo: np.ndarray, hi: np.ndarray, interior: np.ndarray, full_
     if level >= full_scale or level < 2.0 * floor + 10.0 or np.sum(hi_i > level + 2) > 0.005 * hi_i.size:
         return None  # at the full scale anyway, no range of light below it, or readouts beyond it
     return float(level)
+
+
+def _refuse_content_free(ds: Dataset, groups: list[Group], dropped: list[int], excluded: list[tuple[str, str]],
+                         notes: list[str]) -> None:
+    """Refuse a dataset whose frames are all content-free, else say in the notes what was left out.
+
+    Raises
+    ------
+    InputError
+        Every frame, or every condition with two or more frames, is content-free.
+    """
+    first = f"first, {excluded[0][0]}: {excluded[0][1]}"
+    if len(excluded) == len(ds):
+        raise InputError(f"{ds.root}: every one of its {len(ds)} frames is content-free, so it holds nothing of the "
+                         f"sensor to check ({first}); give exposed frames (not all black, all saturated or constant)")
+    if all(g.index in dropped or g.n < 2 for g in groups):
+        raise InputError(f"{ds.root}: {len(excluded)} of its {len(ds)} frames are content-free ({first}) and no "
+                         "condition keeps two frames with content; the noise floor is measured from repeated frames")
+    notes.append(f"{len(excluded)} content-free frame(s) left out ({first})"
+                 + (f"; {len(dropped)} condition(s) without two frames with content dropped" if dropped else ""))
 
 
 def _stackable(frame: np.ndarray, grey: np.ndarray, first_dtype: np.dtype | None) -> np.ndarray:

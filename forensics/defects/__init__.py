@@ -12,11 +12,12 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     submod_attrs={
         "dating": ["ImageDating", "SetDating", "date_dataset", "date_image", "date_set"],
         "detection": [
-            "DEFAULT_Q", "DEFAULT_SIGMA", "ChannelFit", "DetectionResult", "MaskSpec", "detect", "detect_dataset", "detect_datasets",
+            "DEFAULT_Q", "DEFAULT_SIGMA", "ChannelFit", "DetectionResult", "MaskSpec", "check_request", "detect",
+            "detect_dataset", "detect_datasets",
             "parse_mask", "robust_normal",
         ],
         "growth": [
-            "Epoch", "GrowthModel", "GrowthResult", "KindGrowth", "RateEstimate", "epochs_from_datasets",
+            "Epoch", "GrowthModel", "GrowthResult", "KindGrowth", "RateEstimate", "check_model_fields", "epochs_from_datasets",
             "estimate_growth",
         ],
     },

@@ -38,7 +38,8 @@ from scipy import ndimage, stats
 
 from forensics._shared.arrays import full_scale, grey_mean
 from forensics._shared.errors import InputError, UsageError
-from forensics._shared.filters import median_filter
+from forensics._shared.filters import NETWORK_MAX_Q, median_filter
+from forensics._shared.limits import require_memory
 from forensics.sensor.catalogue import KIND_NAMES, PARTIAL, STUCK
 from forensics._shared.progress import Progress, no_progress
 from forensics.io.stack import StackStats, prefetch, stack_sets  # noqa: F401  (prefetch: kept importable from here)
@@ -53,6 +54,13 @@ MIN_IMAGES = 10
 MAD_TO_SIGMA = 1.4826
 #: Above this fraction of constant pixels the stuck test is meaningless (static scenes) and is not applied.
 MAX_CONSTANT_FRACTION = 0.01
+#: Working memory of :func:`detect_datasets` per pixel: peak RSS measured on 16-bit sets of 2048×1024 and
+#: 2048×2048 (grey 69–80 bytes, RGB 1024×1024 175 bytes; about 10 more per further set, whose results are kept).
+BYTES_PER_PIXEL_CHANNEL = 56
+BYTES_PER_PIXEL = 24
+BYTES_PER_PIXEL_SET = 12
+#: scipy's median for q > NETWORK_MAX_Q holds a boolean footprint and an int64 offset per window element.
+BYTES_PER_WINDOW_ELEMENT = 9
 
 
 # =========================================================================== masks
@@ -506,8 +514,38 @@ def detect_datasets(datasets: Sequence[Any], q: int = DEFAULT_Q, sigma: float | 
         if len(ds) == 0:
             raise InputError(f"{ds.root}: no images")
         ds.shape()  # one size, or a clear error naming the odd file
+    cfas = [dataset_cfa(ds) for ds in datasets]
+    check_request([ds.shape() for ds in datasets], q, cfa=any(cfas))  # before the pass over the images
     results = []
-    for ds, stack in zip(datasets, stack_datasets(datasets, progress, executor=executor)):
+    for ds, cfa, stack in zip(datasets, cfas, stack_datasets(datasets, progress, executor=executor)):
         results.append(detect(stack, q=q, sigma=sigma, tau=tau, mask=mask, stuck_tolerance=stuck_tolerance,
-                              cfa=dataset_cfa(ds), full_scale=full_scale(stack.minimum.dtype), threads=threads))
+                              cfa=cfa, full_scale=full_scale(stack.minimum.dtype), threads=threads))
     return results
+
+
+def check_request(shapes: Sequence[tuple[int, ...]], q: int, cfa: bool = False) -> None:
+    """Refuse, before any image is read, a detection that cannot work or would not fit in memory.
+
+    ``shapes`` are the frame shapes of the sets (from their headers), ``q`` the median kernel size; ``cfa``
+    true when the frames are raw mosaics (each 2×2 sub-lattice is filtered on its own).
+
+    Raises
+    ------
+    UsageError
+        ``q`` not odd and ≥ 1; a window whose border (left out of the analysis) covers the whole frame; or a
+        memory estimate (:data:`BYTES_PER_PIXEL_CHANNEL` …) above :func:`~forensics._shared.limits.memory_limit`.
+    """
+    if q < 1 or q % 2 == 0:
+        raise UsageError(f"--q {q}: the median kernel size must be odd and at least 1 (the paper's is 9)")
+    h = min(s[0] for s in shapes)
+    w = min(s[1] for s in shapes)
+    edge = (q // 2) * (2 if cfa else 1)
+    if 2 * edge >= min(h, w):
+        raise UsageError(f"--q {q}: the median window's border ({edge} pixels on every side, left out of the "
+                         f"analysis) covers the whole {w}×{h} frame; give a smaller odd q (the paper's is 9)")
+    pixels = max(s[0] * s[1] for s in shapes)
+    channels = max(s[2] if len(s) == 3 else 1 for s in shapes)
+    nbytes = (BYTES_PER_PIXEL_CHANNEL * channels + BYTES_PER_PIXEL + BYTES_PER_PIXEL_SET * (len(shapes) - 1)) * pixels
+    if q > NETWORK_MAX_Q:
+        nbytes += BYTES_PER_WINDOW_ELEMENT * q * q
+    require_memory(nbytes, f"defect detection on {len(shapes)} set(s) of {w}×{h} images with q = {q}")

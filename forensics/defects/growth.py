@@ -479,19 +479,101 @@ class GrowthModel:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "GrowthModel":
-        """Read a model written by :meth:`save`."""
+        """Read a model written by :meth:`save`.
+
+        Raises
+        ------
+        InputError
+            If the file cannot be read, is not JSON, or any field is missing, of the wrong type or out of
+            range (dates not strictly increasing, a defect outside the frame …): the message names the field.
+        """
         path = Path(path)
         try:
-            obj = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
+            obj = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
             raise InputError(f"{path}: cannot read the growth model ({exc})") from exc
-        if obj.get("format") != MODEL_FORMAT:
-            raise InputError(f"{path}: not a growth model written by 'forensics defects growth -o' "
-                             f"(format {obj.get('format')!r})")
+        found = f"format {obj.get('format')!r}" if isinstance(obj, dict) else f"a JSON {type(obj).__name__}"
+        if not isinstance(obj, dict) or obj.get("format") != MODEL_FORMAT:
+            raise InputError(f"{path}: not a growth model written by 'forensics defects growth -o' ({found})")
         try:
+            check_model_fields(obj)
             return cls.from_dict(obj)
         except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{path}: malformed growth model ({exc})") from exc
+            what = f"'{exc.args[0]}' is missing" if isinstance(exc, KeyError) else exc
+            raise InputError(f"{path}: malformed growth model: {what}; write it again with "
+                             "'forensics defects growth -o'") from exc
 
     def mask_spec(self) -> MaskSpec:
         return MaskSpec.from_dict(self.detection.get("mask", {}))
+
+
+def _finite(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{name} is {value!r}, not a finite number")
+    return float(value)
+
+
+def _whole(value: Any, name: str, low: int, high: float = math.inf) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        bound = f"from {low} to {high}" if math.isfinite(high) else f"≥ {low}"
+        raise ValueError(f"{name} is {value!r}, not a whole number {bound}")
+    return value
+
+
+def _list(value: Any, name: str, length: int | None = None) -> list[Any]:
+    if not isinstance(value, list) or (length is not None and len(value) != length):
+        raise ValueError(f"{name} is not a list" + (f" of {length} values" if length is not None else ""))
+    return value
+
+
+def check_model_fields(obj: dict[str, Any]) -> None:
+    """Check every field of a saved :class:`GrowthModel` that dating relies on.
+
+    Raises
+    ------
+    ValueError, KeyError
+        Naming the first field that is missing, of the wrong type or out of range.
+    """
+    h, w = (_whole(v, "shape", 1) for v in _list(obj["shape"], "shape", 2))
+    if _finite(obj["area_mp"], "area_mp") <= 0:
+        raise ValueError(f"area_mp is {obj['area_mp']!r}, not positive")
+    dates = [_finite(d, "a date") for d in _list(obj["dates"], "dates")]
+    if len(dates) < 2 or any(b <= a for a, b in zip(dates, dates[1:])):
+        raise ValueError(f"dates {dates} are not two or more epochs in increasing order")
+    _list(obj.get("labels", [""] * len(dates)), "labels", len(dates))
+    for key, length in (("counts", len(dates)), ("new", len(dates) - 1)):
+        if not isinstance(obj[key], dict):
+            raise ValueError(f"{key} is not an object")
+        for kind in ("partial", "stuck"):
+            for v in _list(obj[key][kind], f"{key}.{kind}", length):
+                _whole(v, f"a value of {key}.{kind}", 0)
+    for key in ("rates", "threshold", "detection"):
+        if not isinstance(obj.get(key, {}), dict):
+            raise ValueError(f"{key} is not an object")
+    detection = obj.get("detection", {})
+    if "q" in detection and (_whole(detection["q"], "detection.q", 1) % 2 == 0):
+        raise ValueError(f"detection.q is {detection['q']}, not odd")
+    for key in ("sigma", "tau"):
+        if detection.get(key) is not None and _finite(detection[key], f"detection.{key}") <= 0:
+            raise ValueError(f"detection.{key} is {detection[key]!r}, not positive")
+    if _finite(detection.get("stuck_tolerance", 0.0), "detection.stuck_tolerance") < 0:
+        raise ValueError("detection.stuck_tolerance is negative")
+    if not isinstance(detection.get("mask", {}), dict):
+        raise ValueError("detection.mask is not an object")
+    for i, c in enumerate(_list(obj.get("catalogue", []), "catalogue")):
+        name = f"catalogue[{i}]"
+        if not isinstance(c, dict):
+            raise ValueError(f"{name} is not an object")
+        _whole(c["x"], f"{name}.x", 0, w - 1)
+        _whole(c["y"], f"{name}.y", 0, h - 1)
+        if c["kind"] not in KIND_CODES:
+            raise ValueError(f"{name}.kind is {c['kind']!r}, not one of {', '.join(map(repr, KIND_CODES))}")
+        _finite(c["amplitude"], f"{name}.amplitude")
+        _whole(c["first_epoch"], f"{name}.first_epoch", 1, len(dates))
+        hi = _finite(c["onset_hi"], f"{name}.onset_hi")
+        if c.get("onset_lo") is not None and _finite(c["onset_lo"], f"{name}.onset_lo") > hi:
+            raise ValueError(f"{name}: onset_lo {c['onset_lo']} is after onset_hi {hi}")
+    for i, site in enumerate(_list(obj.get("near_last", []), "near_last")):
+        x, y = _list(site, f"near_last[{i}]", 2)
+        _whole(x, f"near_last[{i}] x", 0, w - 1)
+        _whole(y, f"near_last[{i}] y", 0, h - 1)

@@ -19,7 +19,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "compare_all", "load_matcher", "load_matchers",
         ],
         "experiment": [
-            "PROTOCOLS", "ImpactResult", "MatcherTrend", "UnitResult", "run_impact",
+            "PROTOCOLS", "ImpactResult", "SensorSpec", "Spread", "Trend", "UnitResult", "parse_sensors", "run_impact",
         ],
     },
 )

@@ -106,8 +106,8 @@ def parse_sensors(spec: str, shape: tuple[int, int], bit_depth: int) -> list[Sen
                 rate_scale = float(scale) if scale else 1.0
             except ValueError:
                 raise UsageError(f"--sensors '{item}': write a preset and a rate factor as H*100") from None
-            if rate_scale <= 0:
-                raise UsageError(f"--sensors '{item}': the rate factor must be > 0")
+            if not (np.isfinite(rate_scale) and rate_scale > 0):
+                raise UsageError(f"--sensors '{item}': the rate factor must be a finite number > 0")
             label = name.upper() + (f"×{rate_scale:g}" if scale else "")
             out.append(SensorSpec(label, preset(name, shape, bit_depth=bit_depth, rate_scale=rate_scale)))
         elif item.endswith(".json"):
@@ -499,7 +499,7 @@ def run_impact(
               "models": [s.model.to_dict() for s in sensors], "ages": ages, "matchers": names,
               "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
               "seed": seed_record(rng), "forensics_version": __version__}
-    store = Checkpoint(checkpoint, config) if checkpoint is not None else None
+    store = Checkpoint(checkpoint, config, inputs=job.paths) if checkpoint is not None else None
     found, resumed = _run_tasks(_usable_executor(resolve(executor), job), job, store, progress)
     units = [u for s in range(len(sensors)) for a in range(len(ages)) for u in found[s, a]]
     result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,

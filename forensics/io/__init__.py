@@ -1,6 +1,8 @@
 """Getting data in: images (OpenImageIO, rawpy; native dtype, raw mosaics with their CFA), dataset folders
-with an optional ``manifest.csv`` (frames, capture dates, conditions, epochs), one-pass streaming stack
-statistics (mean, variance, minimum, maximum per pixel), and the summaries behind ``forensics info``.
+with an optional ``manifest.csv`` (frames, capture dates, conditions, epochs; the manifest read strictly),
+capture dates and their plausible range, one-pass streaming stack statistics (mean, variance, minimum,
+maximum per pixel), whether a frame holds any content (constant, black or saturated frames), and the
+summaries behind ``forensics info``.
 """
 import lazy_loader as _lazy
 
@@ -9,14 +11,14 @@ import lazy_loader as _lazy
 __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
-        "dataset": [
-            "Dataset", "Frame", "decimal_year", "from_decimal_year", "list_images", "open_dataset",
-            "parse_captured", "split_epochs", "write_manifest",
-        ],
+        "content": ["MIN_EXPOSED", "FrameContent", "content_problem", "frame_content"],
+        "dataset": ["Dataset", "Frame", "list_images", "open_dataset", "split_epochs"],
+        "dates": ["FIRST_YEAR", "LAST_YEAR", "decimal_year", "from_decimal_year", "parse_captured"],
+        "manifest": ["ManifestRow", "read_manifest", "write_manifest"],
         "describe": ["DatasetSummary", "summarize_dataset", "summarize_file"],
         "images": [
             "IMAGE_EXTENSIONS", "RAW_EXTENSIONS", "ImageInfo", "RawMosaic", "bits_dtype", "is_raw", "read_image",
-            "read_info", "read_raw", "write_image",
+            "file_problem", "read_info", "read_raw", "require_regular_file", "write_image",
         ],
         "stack": ["StackAccumulator", "StackStats", "stack_paths", "stack_sets", "stack_stats"],
     },

@@ -6,22 +6,25 @@ The manifest has a header row and the columns
 ``file``       required; path of the image relative to the folder
 ``device``     device identifier (free text; from EXIF make, model and body serial when
                the manifest has none and the file has a serial)
-``captured``   ISO-8601 date or datetime (``2009-07-01``, ``2009-07-01T12:30:00``)
-               or a decimal year (``2009.5``)
-``exposure_s`` exposure time in seconds
-``iso``        ISO sensitivity
-``temperature_c`` sensor or ambient temperature in °C
+``captured``   ISO 8601 date or datetime (``2009-07-01``, ``20090701``,
+               ``2009-07-01T12:30:00``) or a decimal year (``2009.5``), between 1975 and
+               2200 (:mod:`forensics.io.dates` says why)
+``exposure_s`` exposure time in seconds (above 0)
+``iso``        ISO sensitivity (above 0)
+``temperature_c`` sensor or ambient temperature in °C (above absolute zero, at most 150)
 ``subject``    what the frame shows (free text); ``dark`` (any case) means the frame
                was taken without light (lens capped, shutter closed): the model check
                uses such frames as zero light
-``black_level`` the readout's black level in DN, when known (e.g. from the camera's raw
+``black_level`` the readout's black level in DN (0 or more), when known (e.g. from the camera's raw
                metadata); the model check then uses it instead of estimating it
 ``light``      the light level of a calibration frame (free text, e.g. the irradiance of a
                photon-transfer series): frames that differ only in it are different
                conditions for the model check
 ============== =========================================================
 
-Any other column is kept in :attr:`Frame.extra`.  A value missing from the
+Any other column is kept in :attr:`Frame.extra`.  The manifest is read strictly
+(:mod:`forensics.io.manifest`): UTF-8, well-formed CSV, each column and each image
+named once, every value in its range.  A value missing from the
 manifest (or every value, when there is no manifest) is taken from the image's
 EXIF where the file has it.  Without a manifest, every image file directly in
 the folder is used, in name order.
@@ -31,9 +34,6 @@ image in memory.
 """
 from __future__ import annotations
 
-import csv
-import datetime as _dt
-import math
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
@@ -43,16 +43,19 @@ from typing import Any
 import numpy as np
 
 from forensics._shared.errors import InputError
-from forensics.io.images import IMAGE_EXTENSIONS, ImageInfo, read_image, read_info
 from forensics._shared.progress import Progress, no_progress
+from forensics._shared.text import printable
+from forensics.io.dates import decimal_year
+from forensics.io.images import IMAGE_EXTENSIONS, ImageInfo, read_image, read_info
+from forensics.io.manifest import MANIFEST, ManifestRow, read_manifest
 
-MANIFEST = "manifest.csv"
+# Moved to forensics.io.dates and forensics.io.manifest; still importable from here, where callers find them.
+from forensics.io.dates import from_decimal_year, parse_captured  # noqa: E402,F401  (re-exported)
+from forensics.io.manifest import STANDARD_COLUMNS, write_manifest  # noqa: E402,F401  (re-exported)
 #: The ``subject`` of frames taken without light (compared case-insensitively).
 DARK_SUBJECT = "dark"
 #: The optional manifest column that tells light levels apart (an extra column: kept in :attr:`Frame.extra`).
 LIGHT_COLUMN = "light"
-STANDARD_COLUMNS = ("file", "device", "captured", "exposure_s", "iso", "temperature_c", "subject")
-_NUMERIC = ("exposure_s", "iso", "temperature_c")
 
 
 def is_dark_subject(subject: str | None) -> bool:
@@ -82,49 +85,6 @@ def split_epochs(times: np.ndarray, gap_years: float) -> tuple[np.ndarray, np.nd
         epoch[nxt] = current
     epoch_times = np.array([float(np.median(times[epoch == e])) for e in range(current + 1)])
     return epoch, epoch_times
-
-
-def decimal_year(when: _dt.datetime | _dt.date) -> float:
-    """Convert a date or datetime to a decimal year (2009-07-02T12:00 → 2009.5)."""
-    if not isinstance(when, _dt.datetime):
-        when = _dt.datetime(when.year, when.month, when.day)
-    if when.tzinfo is not None:
-        when = when.astimezone(_dt.timezone.utc).replace(tzinfo=None)
-    start = _dt.datetime(when.year, 1, 1)
-    end = _dt.datetime(when.year + 1, 1, 1)
-    return when.year + (when - start).total_seconds() / (end - start).total_seconds()
-
-
-def from_decimal_year(year: float) -> _dt.datetime:
-    """Inverse of :func:`decimal_year` (to the second)."""
-    whole = int(math.floor(year))
-    start = _dt.datetime(whole, 1, 1)
-    length = (_dt.datetime(whole + 1, 1, 1) - start).total_seconds()
-    return start + _dt.timedelta(seconds=round((year - whole) * length))
-
-
-def parse_captured(text: str) -> float:
-    """Parse a ``captured`` value (ISO-8601 date/datetime or decimal year) into a decimal year.
-
-    Raises
-    ------
-    ValueError
-        If the text is neither form.
-    """
-    text = text.strip()
-    try:
-        year = float(text)
-    except ValueError:
-        pass
-    else:
-        if not (1000 <= year <= 3000):
-            raise ValueError(f"decimal year {text} out of range")
-        return year
-    normalised = text[:-1] + "+00:00" if text.endswith("Z") else text
-    try:
-        return decimal_year(_dt.datetime.fromisoformat(normalised))
-    except ValueError:
-        return decimal_year(_dt.date.fromisoformat(text))
 
 
 @dataclass
@@ -237,14 +197,14 @@ class Dataset:
             If the frames do not all have the same size, naming the first that differs.
         """
         if not self.frames:
-            raise InputError(f"{self.root}: dataset has no images")
+            raise InputError(f"{printable(str(self.root))}: dataset has no images")
         infos = [frame.info() for frame in self.frames]
         sizes = [(i.width, i.height, i.channels) for i in infos]
         common = max(set(sizes), key=sizes.count)  # the majority size; the odd ones are named
         for info, size in zip(infos, sizes):
             if size != common:
                 raise InputError(
-                    f"{info.path}: size {size[0]}×{size[1]}×{size[2]} differs from the other images' "
+                    f"{printable(str(info.path))}: size {size[0]}×{size[1]}×{size[2]} differs from the other images' "
                     f"{common[0]}×{common[1]}×{common[2]}; a dataset's images must all have one size"
                 )
         return infos[0].shape
@@ -281,8 +241,9 @@ class Dataset:
             when = frame.captured
             if when is None:
                 raise InputError(
-                    f"{frame.path}: no capture date: the field 'captured' is missing from "
-                    f"{self.root / MANIFEST} and from the file's EXIF; add a 'captured' column"
+                    f"{printable(str(frame.path))}: no capture date: the field 'captured' is missing from "
+                    f"{printable(str(self.root / MANIFEST))} and the file's EXIF has none (or an implausible one); "
+                    "add a 'captured' column"
                 )
             times.append(when)
         return np.asarray(times, dtype=float)
@@ -314,107 +275,28 @@ def open_dataset(folder: str | os.PathLike, allow_outside: bool = False) -> Data
     Raises
     ------
     InputError
-        The folder is missing or empty, or the manifest lacks ``file``, names a
-        file that does not exist, or holds a value that does not parse; the
-        message names the file, row and field.
+        The folder is missing or empty, or the manifest is not a UTF-8 CSV file, lacks ``file``, names a
+        file twice or one that does not exist, or holds a value that does not parse or is out of range;
+        the message names the file, line and field (:func:`~forensics.io.manifest.read_manifest`).
     """
     root = Path(folder)
+    if not root.exists():
+        raise InputError(f"{printable(str(root))}: does not exist; check the path (a dataset is a folder of images "
+                         "with an optional manifest.csv)")
     if not root.is_dir():
-        raise InputError(f"{root}: not a folder; a dataset is a folder of images with an optional manifest.csv")
+        raise InputError(f"{printable(str(root))}: not a folder; a dataset is a folder of images with an optional "
+                         "manifest.csv")
     manifest = root / MANIFEST
-    if not manifest.exists():
+    if not os.path.lexists(manifest):
         paths = list_images(root)
         if not paths:
-            raise InputError(f"{root}: no images found; add PNG/TIFF/JPEG/BMP/raw files or a manifest.csv")
+            raise InputError(f"{printable(str(root))}: no images found; add PNG/TIFF/JPEG/BMP/raw files or a manifest.csv")
         return Dataset(root, [Frame(path=p, file=p.name) for p in paths], has_manifest=False)
-    return Dataset(root, _read_manifest(root, manifest, allow_outside), has_manifest=True)
+    frames = [_frame(row) for row in read_manifest(root, manifest, allow_outside)]
+    return Dataset(root, frames, has_manifest=True)
 
 
-def _read_manifest(root: Path, manifest: Path, allow_outside: bool = False) -> list[Frame]:
-    with open(manifest, newline="", encoding="utf-8-sig") as handle:
-        reader = csv.DictReader(handle)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        if "file" not in header:
-            raise InputError(f"{manifest}: the header has no 'file' column; the first row must name the columns (file, captured, …)")
-        reader.fieldnames = header
-        frames = []
-        for row_number, row in enumerate(reader, start=2):
-            frames.append(_frame_from_row(root, manifest, row_number, row, allow_outside))
-    if not frames:
-        raise InputError(f"{manifest}: no rows; list one image per row under the header")
-    return frames
-
-
-def _frame_from_row(root: Path, manifest: Path, row_number: int, row: dict[str, Any],
-                    allow_outside: bool = False) -> Frame:
-    where = f"{manifest}, line {row_number}"
-    values = {k: (v or "").strip() for k, v in row.items() if k is not None}
-    name = values.get("file", "")
-    if not name:
-        raise InputError(f"{where}: field 'file' is empty; give the image's path relative to the folder")
-    path = root / name
-    if not allow_outside and not _inside(root, path):
-        raise InputError(f"{where}: file '{name}' lies outside the dataset folder {root} (absolute path, '..' or a "
-                         "link leaving it); move it into the folder or pass --allow-outside")
-    if not path.is_file():
-        raise InputError(f"{where}: file '{name}' does not exist in {root}; fix the row or add the file")
-    numbers: dict[str, float | None] = {}
-    for column in _NUMERIC:
-        text = values.get(column, "")
-        if not text:
-            numbers[column] = None
-            continue
-        try:
-            numbers[column] = float(text)
-        except ValueError:
-            raise InputError(f"{where}: field '{column}' = '{text}' is not a number") from None
-        if not math.isfinite(numbers[column]) or (column != "temperature_c" and numbers[column] <= 0):  # type: ignore[operator]
-            raise InputError(f"{where}: field '{column}' = '{text}' is out of range")
-    captured = None
-    if values.get("captured"):
-        try:
-            captured = parse_captured(values["captured"])
-        except ValueError:
-            raise InputError(
-                f"{where}: field 'captured' = '{values['captured']}' is not an ISO-8601 date or datetime "
-                "or a decimal year (e.g. 2009-07-01, 2009-07-01T12:30:00 or 2009.5)"
-            ) from None
-    extra = {k: v for k, v in values.items() if k not in STANDARD_COLUMNS}
-    return Frame(
-        path=path,
-        file=name,
-        device=values.get("device") or None,
-        subject=values.get("subject") or None,
-        temperature_c=numbers["temperature_c"],
-        extra=extra,
-        _captured=captured,
-        _exposure_s=numbers["exposure_s"],
-        _iso=numbers["iso"],
-    )
-
-
-def _inside(root: Path, path: Path) -> bool:
-    """Whether ``path`` (symbolic links followed) lies inside ``root``."""
-    return path.resolve().is_relative_to(root.resolve())
-
-
-def write_manifest(path: str | os.PathLike, rows: list[dict[str, Any]], force: bool = False) -> Path:
-    """Write a ``manifest.csv`` atomically from a list of row dicts (standard columns first)."""
-    from forensics._shared.atomic import atomic_file
-
-    columns = [c for c in STANDARD_COLUMNS if any(c in r for r in rows)]
-    columns += sorted({k for r in rows for k in r} - set(columns))
-    with atomic_file(path, force=force, mode="w") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns, lineterminator="\n")
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: _manifest_value(v) for k, v in row.items()})
-    return Path(path)
-
-
-def _manifest_value(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, float):
-        return repr(round(value, 6)) if not value.is_integer() else f"{value:.1f}"
-    return str(value)
+def _frame(row: ManifestRow) -> Frame:
+    return Frame(path=row.path, file=row.file, device=row.device, subject=row.subject,
+                 temperature_c=row.temperature_c, extra=row.extra, _captured=row.captured,
+                 _exposure_s=row.exposure_s, _iso=row.iso)

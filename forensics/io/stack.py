@@ -27,6 +27,7 @@ import numpy as np
 
 from forensics._shared.errors import InputError
 from forensics._shared.progress import Progress, no_progress
+from forensics._shared.text import printable
 
 if TYPE_CHECKING:  # the execution layer is imported only where a parallel pass runs
     from forensics._shared.parallel import Executor
@@ -93,7 +94,7 @@ class StackAccumulator:
         if self._dtype is None:
             self._start(image, name)
         elif image.shape != self._min.shape or image.dtype != self._dtype:
-            raise InputError(f"{name}: {image.dtype} {image.shape} differs from the first image's "
+            raise InputError(f"{printable(str(name))}: {image.dtype} {image.shape} differs from the first image's "
                              f"{self._dtype} {self._min.shape}; a stack's images must all have one size and type")
         else:
             np.minimum(self._min, image, out=self._min)
@@ -160,7 +161,7 @@ class StackAccumulator:
             self.__dict__.update(other.__dict__)
             return self
         if other._min.shape != self._min.shape or other._dtype != self._dtype:
-            raise InputError(f"{other.first_name}: {other._dtype} {other._min.shape} differs from the first image's "
+            raise InputError(f"{printable(str(other.first_name))}: {other._dtype} {other._min.shape} differs from the first image's "
                              f"{self._dtype} {self._min.shape}; a stack's images must all have one size and type")
         np.minimum(self._min, other._min, out=self._min)
         np.maximum(self._max, other._max, out=self._max)

@@ -63,8 +63,8 @@ upper one-sided 95 % bound.
 So the probability that any image is put with another camera's images is at most ``p_fa``.  A device with
 only one image in the collection stays unattributed.
 
-Purity, inverse purity (completeness) and the adjusted Rand index of a clustering against known labels are
-here too (:func:`purity`, :func:`completeness`, :func:`adjusted_rand_index`); SciPy has none of them.
+The clusters are written as a dataset by :func:`~forensics.prnu.clusterwrite.write_cluster_dataset`; their
+agreement with known labels is measured by :mod:`forensics.prnu.agreement` (both importable from here too).
 """
 from __future__ import annotations
 
@@ -86,8 +86,11 @@ from forensics import __version__
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.parallel import Executor, chunks, resolve
 from forensics._shared.progress import Progress, no_progress
+from forensics.prnu.agreement import adjusted_rand_index, completeness, purity
+from forensics.prnu.clusterwrite import write_cluster_dataset
+from forensics.prnu.correlation import _false_alarm, sidak_z
 from forensics.prnu.fingerprint import ImageSet, Region
-from forensics.prnu.match import QUERY_SIGMA, _false_alarm, prepare_query
+from forensics.prnu.match import QUERY_SIGMA, prepare_query
 
 __all__ = [
     "BLOCK_MEMORY",
@@ -131,62 +134,6 @@ JACKKNIFE_GROUPS = 10
 #: Level of the interval of σ shown to the user; the thresholds use the one-sided bound of the same level.
 LEVEL = 0.95
 UNATTRIBUTED = "unattributed"
-
-
-# ----------------------------------------------------------------------------- label agreement
-
-
-def _contingency(truth: Sequence[Any], labels: Sequence[Any]) -> np.ndarray:
-    """Counts of (true class, cluster); a label None is a cluster of its own (an unattributed image)."""
-    if len(truth) != len(labels):
-        raise UsageError(f"{len(truth)} true labels for {len(labels)} cluster labels; give one of each per image")
-    own = [("__single__", i) if lab is None else ("__label__", lab) for i, lab in enumerate(labels)]
-    _, t = np.unique(np.array([str(x) for x in truth], dtype=object), return_inverse=True)
-    cluster_ids: dict[Any, int] = {}
-    c = np.array([cluster_ids.setdefault(key, len(cluster_ids)) for key in own])
-    table = np.zeros((int(t.max()) + 1 if len(t) else 0, len(cluster_ids)), np.int64)
-    np.add.at(table, (t, c), 1)
-    return table
-
-
-def purity(truth: Sequence[Any], labels: Sequence[Any]) -> float:
-    """Share of images whose cluster's majority class is their own class: ``Σ_c max_k n_ck / n``.
-
-    ``labels`` None marks an unattributed image, counted as a cluster of its own (always pure).
-    """
-    table = _contingency(truth, labels)
-    return float(table.max(axis=0).sum() / max(1, table.sum()))
-
-
-def completeness(truth: Sequence[Any], labels: Sequence[Any]) -> float:
-    """Inverse purity: share of images in their class's largest cluster, ``Σ_k max_c n_ck / n``.
-
-    An unattributed image (label None) is a cluster of its own, so leaving images out lowers it.
-    """
-    table = _contingency(truth, labels)
-    return float(table.max(axis=1).sum() / max(1, table.sum()))
-
-
-def adjusted_rand_index(truth: Sequence[Any], labels: Sequence[Any]) -> float:
-    """Hubert & Arabie's adjusted Rand index (1: identical partitions, about 0: chance agreement).
-
-    Unattributed images (label None) are singletons.  Two partitions that are both all singletons (or
-    both one cluster) agree perfectly: 1.
-    """
-    table = _contingency(truth, labels)
-    n = int(table.sum())
-
-    def pairs(x: np.ndarray) -> float:
-        return float((x * (x - 1) // 2).sum())
-
-    index = pairs(table)
-    a, b = pairs(table.sum(axis=1)), pairs(table.sum(axis=0))
-    total = n * (n - 1) / 2
-    expected = a * b / total if total else 0.0
-    top = (a + b) / 2
-    if top == expected:
-        return 1.0
-    return float((index - expected) / (top - expected))
 
 
 # ----------------------------------------------------------------------------- residuals
@@ -597,17 +544,6 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-# ----------------------------------------------------------------------------- thresholds
-
-
-def _sidak_z(p_fa: float, n_tests: int) -> float:
-    """z with ``P(any of n_tests standard normals ≥ z) = p_fa`` for independent tests (Šidák)."""
-    if n_tests <= 0:
-        return math.inf
-    alpha = -math.expm1(math.log1p(-p_fa) / n_tests)
-    return float(-special.ndtri(alpha))
-
-
 # ----------------------------------------------------------------------------- clustering one group
 
 
@@ -957,7 +893,7 @@ def _stage_merge(states: list[_GroupState], p_fa: float) -> None:
         m = len(st.plan.members)
         st.n_comparisons = (m - 1) ** 2 * (2 if any(st.plan.rotated) else 1) if st.null is not None else 0
     total = sum(st.n_comparisons for st in states)
-    z = _sidak_z(p_fa / 2, total)
+    z = sidak_z(p_fa / 2, total)
     for st in states:
         if st.null is None or st.gram is None:
             continue
@@ -980,7 +916,7 @@ def _stage_attach(states: list[_GroupState], p_fa: float) -> None:
             st.n_attach_tests += versions * len(big)
             candidates.append((st, k, big))
     total = sum(st.n_attach_tests for st in states)
-    z = _sidak_z(p_fa / 2, total)
+    z = sidak_z(p_fa / 2, total)
     for st in states:
         if st.null is not None and st.null.sigma > 0:
             st.tau_attach = z * st.null.sigma_upper / st.null.sigma
@@ -1078,98 +1014,3 @@ def _image_assignment(st: _GroupState, g: int, k: int, i: int, zg: np.ndarray | 
                   for ms in cluster_members.values() for v in versions), default=-math.inf)
         stage = UNATTRIBUTED
     return ImageAssignment(i, names[i], source, g, rotation, label, stage, best_match, best, p, cz, label is not None)
-
-
-# ----------------------------------------------------------------------------- output dataset
-
-
-def _place(src: Path, dst: Path) -> str:
-    """Hard-link ``src`` to ``dst`` (same file system), else copy it; never a symbolic link."""
-    try:
-        os.link(src, dst)
-        return "link"
-    except OSError:
-        shutil.copy2(src, dst)
-        return "copy"
-
-
-def write_cluster_dataset(result: ClusterResult, out: str | os.PathLike, *, captured: Sequence[float | None] | None = None,
-                          force: bool = False) -> dict[str, Any]:
-    """Write the clusters as a dataset folder, atomically; the input images are never modified.
-
-    Layout: ``OUT/<device>/<image>`` (``OUT/unattributed/`` for images attributed to no device), each image
-    hard-linked when the output is on the input's file system, else copied (never a symbolic link, which a
-    manifest would refuse as leaving the folder; a hard link shares the input's bytes, so edit copies, not
-    these files); ``OUT/manifest.csv`` with ``file, device, source_file``
-    (+ ``captured`` when known), ``device`` empty for unattributed images; one ``manifest.csv`` per device
-    folder, so ``forensics fingerprint build OUT/cluster-01`` works as it is; ``clusters.json``
-    (:meth:`ClusterResult.to_dict`) and ``similarity.npz`` (each size group's z matrix and its files).
-
-    Parameters
-    ----------
-    result : ClusterResult
-    out : path
-    captured : sequence of float or None, optional
-        Capture time (decimal year) of each image, in input order.
-    force : bool
-        Replace an existing ``out``.
-
-    Returns
-    -------
-    dict
-        ``{"output", "linked", "copied"}``.
-
-    Raises
-    ------
-    UsageError
-        ``out`` exists (without ``force``) or holds one of the inputs.
-    InputError
-        An image's source is not a file (images given as arrays cannot be written).
-    """
-    from forensics._shared.atomic import atomic_directory, refuse_existing, write_json
-    from forensics.io.dataset import write_manifest
-
-    out = refuse_existing(out, force)
-    sources = [Path(a.source) for a in result.images]
-    for a, src in zip(result.images, sources):
-        if not src.is_file():
-            raise InputError(f"{a.source}: not a file; only images read from files can be written to a dataset")
-        if src.resolve().is_relative_to(out.resolve()):
-            raise UsageError(f"{out}: holds the input {src}; choose an output outside the inputs")
-    if captured is not None and len(captured) != len(result.images):
-        raise UsageError(f"{len(captured)} capture times for {len(result.images)} images; give one per image")
-    counts = {"link": 0, "copy": 0}
-    with atomic_directory(out, force=force) as tmp:
-        rows: list[dict[str, Any]] = []
-        per_folder: dict[str, list[dict[str, Any]]] = {}
-        used: set[str] = set()
-        for a, src in zip(result.images, sources):
-            folder = a.cluster or UNATTRIBUTED
-            name = _unique_name(folder, src.name, used)
-            (tmp / folder).mkdir(exist_ok=True)
-            counts[_place(src, tmp / folder / name)] += 1
-            row: dict[str, Any] = {"file": f"{folder}/{name}", "device": a.cluster or "", "source_file": str(src)}
-            if captured is not None and captured[a.index] is not None:
-                row["captured"] = captured[a.index]
-            rows.append(row)
-            per_folder.setdefault(folder, []).append({**row, "file": name})
-        write_manifest(tmp / "manifest.csv", rows)
-        for folder, folder_rows in per_folder.items():
-            write_manifest(tmp / folder / "manifest.csv", folder_rows)
-        write_json(tmp / "clusters.json", result.to_dict())
-        arrays = {f"group{g.index}": z for g, z in zip(result.groups, result.similarity)}
-        arrays.update({f"group{g.index}_files": np.array([result.images[i].file for i in g.members], dtype=str)
-                       for g in result.groups})
-        np.savez_compressed(tmp / "similarity.npz", **arrays)
-    return {"output": str(out), "linked": counts["link"], "copied": counts["copy"]}
-
-
-def _unique_name(folder: str, name: str, used: set[str]) -> str:
-    """``name`` in ``folder``, with ``-2``, ``-3``, … before the suffix when taken (case-insensitively)."""
-    stem, suffix = os.path.splitext(name)
-    candidate, k = name, 1
-    while f"{folder}/{candidate}".lower() in used:
-        k += 1
-        candidate = f"{stem}-{k}{suffix}"
-    used.add(f"{folder}/{candidate}".lower())
-    return candidate

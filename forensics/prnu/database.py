@@ -34,8 +34,21 @@ the same count), and it is not a prediction of any PCE: the signal-to-noise rati
 fingerprint cannot be separated from ``K`` alone, since the sensor's true pattern and the
 estimation noise are both white.
 
-Each fingerprint's SHA-256 (of ``K``'s bytes) is kept in its row and checked when the
-fingerprint is loaded, so a file changed behind the database's back is reported.
+Integrity
+---------
+Each row keeps two SHA-256 checksums in its provenance: ``fingerprint_sha256`` over ``K``'s bytes *and*
+the fingerprint's metadata (region, frame shape, σ, images, parameters: everything identification
+uses), checked when the fingerprint is loaded, so a file changed behind the database's back — its
+pattern or its metadata — is reported, naming the entry; and ``k_sha256`` over ``K`` alone, which
+identifies the pattern: a fingerprint identical to one already in the database under another id is
+refused (two indistinguishable entries would make every decision between them arbitrary).  Entries
+added by earlier versions have ``k_sha256`` only; they stay readable, checked on ``K`` and on the
+index's region and frame-size columns (which hold what identification uses of the metadata).
+
+Every path the database reads, writes or deletes is confined to its folder: the index's ``file``
+column must be a plain name of the form it writes (``fingerprints/<name>.npz``), a regular file in the
+``fingerprints`` folder; anything else (an absolute path, ``..``, a link) is a damaged index, refused
+with nothing changed.
 """
 from __future__ import annotations
 
@@ -57,8 +70,10 @@ from typing import Any
 import numpy as np
 
 from forensics import __version__
+from forensics._shared.atomic import current_umask, mkdtemp_like_mkdir
 from forensics._shared.errors import InputError, UsageError
-from forensics.prnu.fingerprint import Fingerprint
+from forensics._shared.jsonsafe import dumps
+from forensics.prnu.fingerprint import Fingerprint, check_fingerprint
 
 __all__ = ["DeviceEntry", "FingerprintDatabase", "SCHEMA_VERSION", "INDEX", "FINGERPRINTS"]
 
@@ -69,6 +84,8 @@ FINGERPRINTS = "fingerprints"
 #: Seconds a writer waits for another writer's lock before giving up.
 LOCK_TIMEOUT_S = 60.0
 MAX_ID_LENGTH = 200
+#: The only form of the index's ``file`` column: a plain ``.npz`` name in the fingerprints folder (see _safe_name).
+_FILE_RE = re.compile(rf"{FINGERPRINTS}/[A-Za-z0-9][A-Za-z0-9._-]{{0,99}}\.npz")
 
 _SCHEMA = f"""
 CREATE TABLE schema (format TEXT NOT NULL, version INTEGER NOT NULL);
@@ -138,8 +155,16 @@ class DeviceEntry:
 
 
 def _k_digest(k: np.ndarray) -> str:
-    """SHA-256 of K as stored (float32, C order)."""
+    """SHA-256 of K as stored (float32, C order): the pattern's identity."""
     return hashlib.sha256(np.ascontiguousarray(k, np.float32).tobytes()).hexdigest()
+
+
+def _fingerprint_digest(fp: Fingerprint) -> str:
+    """SHA-256 of K and of the fingerprint's metadata (canonical JSON of :meth:`Fingerprint.to_dict`)."""
+    digest = hashlib.sha256(np.ascontiguousarray(fp.K, np.float32).tobytes())
+    digest.update(b"\0")
+    digest.update(dumps(fp.to_dict(), sort_keys=True, separators=(",", ":")).encode())
+    return digest.hexdigest()
 
 
 def _check_id(device_id: Any, what: str) -> str:
@@ -169,6 +194,29 @@ def _fsync(path: Path) -> None:
             os.close(fd)
 
 
+def _provenance_digest(provenance: Any) -> str | None:
+    """``k_sha256`` of a row's provenance text (None when it has none or cannot be read)."""
+    try:
+        value = json.loads(provenance).get("k_sha256")
+    except (TypeError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) else None
+
+
+def _mismatch(entry: DeviceEntry, fp: Fingerprint) -> str | None:
+    """What differs between a fingerprint file and its index row (module notes), or None."""
+    if fp.region != entry.region:
+        return f"region {fp.region}, the index says {entry.region}"
+    if tuple(fp.frame_shape) != (entry.height, entry.width):
+        return (f"frame {fp.frame_shape[1]}×{fp.frame_shape[0]}, the index says {entry.width}×{entry.height}")
+    full, k_only = entry.provenance.get("fingerprint_sha256"), entry.provenance.get("k_sha256")
+    if full is not None:
+        return None if _fingerprint_digest(fp) == full else "its pattern or its metadata changed (checksum)"
+    if k_only is not None and _k_digest(fp.K) != k_only:  # an entry of an earlier version: K's checksum only
+        return "its pattern changed (checksum of K)"
+    return None
+
+
 def _init_index(path: Path) -> None:
     """Create an index with the schema at ``path`` (a new file) in WAL mode."""
     con = sqlite3.connect(path, isolation_level=None)
@@ -177,6 +225,7 @@ def _init_index(path: Path) -> None:
         con.executescript(f"BEGIN;{_SCHEMA}COMMIT;")
     finally:
         con.close()
+    os.chmod(path, 0o666 & ~current_umask())  # sqlite makes 0644 whatever the umask; its -wal/-shm follow this
 
 
 @dataclass
@@ -284,9 +333,11 @@ class FingerprintDatabase:
         if not self.index.exists():
             self._create_or_refuse(create)
         self._check_schema()
-        if not (self.folder / FINGERPRINTS).is_dir():
-            raise InputError(f"{self.folder}: fingerprint database without its '{FINGERPRINTS}' folder; the "
-                             "database is damaged: restore it from a copy or build a new one")
+        files = self.folder / FINGERPRINTS
+        if not files.is_dir() or files.is_symlink():
+            what = "is a symbolic link" if files.is_symlink() else "is missing"
+            raise InputError(f"{self.folder}: the database's '{FINGERPRINTS}' folder {what}; the database is damaged: "
+                             "restore it from a copy or build a new one")
 
     def __repr__(self) -> str:
         return f"FingerprintDatabase({str(self.folder)!r})"
@@ -314,7 +365,7 @@ class FingerprintDatabase:
         """Build the database in a temporary sibling and rename it into place: never seen half-made."""
         folder = self.folder
         folder.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
+        tmp = mkdtemp_like_mkdir(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent)
         try:
             _init_index(tmp / INDEX)
             (tmp / FINGERPRINTS).mkdir()
@@ -401,9 +452,30 @@ class FingerprintDatabase:
                         path.unlink()
                 raise
 
+    def _path(self, rel: Any, device_id: Any) -> Path:
+        """The fingerprint file an index row names, confined to the fingerprints folder (module notes).
+
+        Raises
+        ------
+        InputError
+            The ``file`` column is not a plain name of the expected form, or names a link or a non-file.
+        """
+        folder = self.folder / FINGERPRINTS
+        path = folder / Path(str(rel)).name
+        if (not isinstance(rel, str) or not _FILE_RE.fullmatch(rel) or path.is_symlink()
+                or (path.exists() and not path.is_file())):
+            raise InputError(f"{self.folder}: the index names {str(rel)[:120]!r} as the file of device {device_id!r}, "
+                             f"which is not a fingerprint file of its '{FINGERPRINTS}' folder: the index is damaged "
+                             "(nothing was changed); restore the database from a copy")
+        return path
+
     def _sweep(self, con: sqlite3.Connection) -> None:
-        """Delete files no row names (left by a writer that died); safe under the write lock."""
-        named = {row[0] for row in con.execute("SELECT file FROM devices")}
+        """Delete files no row names (left by a writer that died); safe under the write lock.
+
+        Every row's file is checked first (:meth:`_path`): with a damaged index nothing is deleted.
+        """
+        rows = con.execute("SELECT device_id, file FROM devices").fetchall()
+        named = {str(self._path(rel, device_id).relative_to(self.folder).as_posix()) for device_id, rel in rows}
         for path in (self.folder / FINGERPRINTS).iterdir():
             rel = f"{FINGERPRINTS}/{path.name}"
             stray = path.name.endswith(".part") or (path.suffix == ".npz" and rel not in named)
@@ -431,7 +503,7 @@ class FingerprintDatabase:
     def _find(self, device_id: str) -> DeviceEntry | None:
         with self._connect() as con:
             row = con.execute(f"SELECT {', '.join(_COLUMNS)} FROM devices WHERE device_id = ?",
-                              (str(device_id),)).fetchone()
+                              (str(device_id).strip(),)).fetchone()  # ids are stored stripped (_check_id)
         return None if row is None else self._row_entry(row)
 
     def get(self, device_id: str) -> DeviceEntry:
@@ -467,7 +539,7 @@ class FingerprintDatabase:
         """
         for attempt in range(2):
             entry = self.get(device_id)
-            path = self.folder / entry.file
+            path = self._path(entry.file, entry.device_id)
             try:
                 fp = Fingerprint.load(path)
                 break
@@ -479,10 +551,10 @@ class FingerprintDatabase:
                                      f"missing; remove the entry (forensics fingerprint db remove {self.folder} "
                                      f"'{device_id}') and add the fingerprint again") from None
                 # a writer replaced or removed the entry between our reading its row and its file: read the row again
-        digest = entry.provenance.get("k_sha256")
-        if fp.region != entry.region or (digest is not None and _k_digest(fp.K) != digest):
-            raise InputError(f"{path}: the fingerprint of device {device_id!r} does not match the database index "
-                             "(changed outside the database); add it again with --replace")
+        problem = _mismatch(entry, fp)
+        if problem is not None:
+            raise InputError(f"{path}: the fingerprint of device {entry.device_id!r} does not match the database index "
+                             f"({problem}): changed outside the database; add it again with --replace")
         return fp
 
     # ------------------------------------------------------------------ writing
@@ -523,9 +595,10 @@ class FingerprintDatabase:
         ------
         UsageError
             No device id can be found (give one), an id exists and ``replace`` is false,
-            or one id is given twice.
+            one id is given twice, or a fingerprint is identical (same ``K``) to another device's.
         InputError
-            A fingerprint file cannot be read.
+            A fingerprint file cannot be read or holds no usable pattern (NaN, constant), or the
+            index is damaged (a ``file`` outside the fingerprints folder); nothing is written.
         """
         n = len(fingerprints)
         ids = list(device_ids) if device_ids is not None else [None] * n
@@ -533,21 +606,32 @@ class FingerprintDatabase:
         if len(ids) != n or len(extra) != n:
             raise UsageError("add_many: give one device id (or None) and one provenance per fingerprint")
         added: list[DeviceEntry] = []
-        old_files: list[str] = []
+        old_files: list[Path] = []
         with self._write() as (con, written):
-            existing = dict(con.execute("SELECT device_id, file FROM devices").fetchall())
+            rows = con.execute("SELECT device_id, file, provenance FROM devices").fetchall()
+            existing = {device_id: rel for device_id, rel, _ in rows}
+            patterns = {_provenance_digest(prov): device_id for device_id, _, prov in rows}
             for item, device_id, prov in zip(fingerprints, ids, extra):
-                fp = item if isinstance(item, Fingerprint) else Fingerprint.load(item)
-                if not isinstance(item, Fingerprint):
+                if isinstance(item, Fingerprint):
+                    fp = item
+                    check_fingerprint(fp, f"fingerprint {len(added) + 1}")
+                else:
+                    fp = Fingerprint.load(item)  # checked as it is read
                     prov = {"fingerprint_file": str(Path(item).resolve()), **prov}
                 entry = self._describe(fp, device_id, make, model, serial, prov)
                 if any(e.device_id == entry.device_id for e in added):
                     raise UsageError(f"device id {entry.device_id!r} is given to two fingerprints; one id per device")
+                twin = patterns.get(entry.provenance["k_sha256"])
+                if twin is not None and twin != entry.device_id:
+                    raise UsageError(f"{prov.get('fingerprint_file') or 'the fingerprint'}: identical to the fingerprint "
+                                     f"of device {twin!r} (same K); two devices cannot have one pattern, so "
+                                     "identification could not tell them apart: add it once, under one id")
                 if entry.device_id in existing:
                     if not replace:
                         raise UsageError(f"{self.folder}: device {entry.device_id!r} is already in the database; "
                                          "add it with --replace to replace its fingerprint")
-                    old_files.append(existing[entry.device_id])
+                    old_files.append(self._path(existing[entry.device_id], entry.device_id))  # checked before writing
+                patterns[entry.provenance["k_sha256"]] = entry.device_id
                 path = self.folder / entry.file
                 written.append(path)
                 fp.save(path)  # temporary name, then rename (atomic_file)
@@ -555,9 +639,9 @@ class FingerprintDatabase:
                 self._insert(con, entry)
                 added.append(entry)
                 del fp  # one fingerprint in memory at a time
-        for rel in old_files:  # after the commit: a reader of the old row finds the new one (see load)
+        for old in old_files:  # after the commit: a reader of the old row finds the new one (see load)
             with contextlib.suppress(FileNotFoundError):
-                (self.folder / rel).unlink()
+                old.unlink()
         return added
 
     @staticmethod
@@ -599,6 +683,7 @@ class FingerprintDatabase:
                         "excluded_pixel_fraction": excluded},
             **extra,
             "k_sha256": _k_digest(fp.K),
+            "fingerprint_sha256": _fingerprint_digest(fp),
         }
         return DeviceEntry(
             device_id=device_id,
@@ -623,12 +708,16 @@ class FingerprintDatabase:
         ------
         UsageError
             If the database has no such device.
+        InputError
+            If its row names a file outside the fingerprints folder (a damaged index): nothing is deleted.
         """
+        key = str(device_id).strip()  # ids are stored stripped (_check_id)
         with self._write() as (con, _):
-            row = con.execute("SELECT file FROM devices WHERE device_id = ?", (str(device_id),)).fetchone()
+            row = con.execute("SELECT file FROM devices WHERE device_id = ?", (key,)).fetchone()
             if row is None:
-                raise UsageError(f"{self.folder}: no device {device_id!r}; 'forensics fingerprint db list "
+                raise UsageError(f"{self.folder}: no device {key!r}; 'forensics fingerprint db list "
                                  f"{self.folder}' shows the device ids")
-            con.execute("DELETE FROM devices WHERE device_id = ?", (str(device_id),))
+            path = self._path(row[0], key)  # before anything is deleted
+            con.execute("DELETE FROM devices WHERE device_id = ?", (key,))
         with contextlib.suppress(FileNotFoundError):
-            (self.folder / row[0]).unlink()
+            path.unlink()

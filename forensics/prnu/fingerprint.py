@@ -51,10 +51,11 @@ whether it was built image by image, in worker processes or on a Dask cluster.
 from __future__ import annotations
 
 import copy
-import functools
+import math
 import json
 import os
-import re
+import zipfile
+import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +71,8 @@ from forensics._shared.jsonsafe import dumps, to_jsonable
 from forensics._shared.parallel import Checkpoint, Executor, chunks, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.arrays import GREY_WEIGHTS, full_scale
+from forensics.prnu.imageset import ImageSet
+from forensics.prnu.region import Region, parse_region
 from forensics.prnu.residual import (
     LEVELS,
     WAVELET,
@@ -91,8 +94,10 @@ __all__ = [
     "Fingerprint",
     "build_fingerprint",
     "build_fingerprints",
+    "check_fingerprint",
     "chunk_sums",
     "postprocess",
+    "region_content_problem",
     "region_residual_and_intensity",
     "FORMAT",
 ]
@@ -104,130 +109,6 @@ ROLLOFF_V = 6.0 / 255.0**2
 #: Images per chunk of the sums (see the module notes): fixed by the estimator, never by the number of
 #: workers, so that every way of building a fingerprint adds the same numbers in the same order.
 CHUNK_IMAGES = 8
-
-Slices = tuple[slice, slice]
-
-
-# ----------------------------------------------------------------------------- regions
-
-
-@dataclass(frozen=True)
-class Region:
-    """Where in the frame the fingerprint lives.
-
-    Attributes
-    ----------
-    kind : {'full', 'center', 'corners'}
-    size : (int, int) or None
-        Crop size (height, width) for 'center'; patch size (N, N) for 'corners'.
-    """
-
-    kind: str
-    size: tuple[int, int] | None = None
-
-    @property
-    def spec(self) -> str:
-        """The text form accepted by :func:`parse_region`."""
-        if self.kind == "full":
-            return "full"
-        assert self.size is not None
-        h, w = self.size
-        text = str(h) if h == w else f"{h}x{w}"
-        return f"{self.kind}:{text}"
-
-    def __str__(self) -> str:
-        return self.spec
-
-    def pieces(self, frame_shape: Sequence[int]) -> list[Slices]:
-        """The (row, column) slices of the frame that make up the region, in mosaic order."""
-        fh, fw = int(frame_shape[0]), int(frame_shape[1])
-        if self.kind == "full":
-            return [(slice(0, fh), slice(0, fw))]
-        assert self.size is not None
-        h, w = self.size
-        if self.kind == "center":
-            if h > fh or w > fw:
-                raise InputError(f"region {self.spec} does not fit in a {fh}×{fw} frame; choose a smaller crop")
-            top = ((fh - h) // 2) & ~1
-            left = ((fw - w) // 2) & ~1
-            return [(slice(top, top + h), slice(left, left + w))]
-        # corners: start coordinates rounded down to even so every patch keeps the CFA phase
-        if 2 * h > fh or 2 * w > fw:
-            raise InputError(f"region {self.spec}: four {h}×{w} corners do not fit in a {fh}×{fw} frame")
-        bottom = (fh - h) & ~1
-        right = (fw - w) & ~1
-        return [
-            (slice(0, h), slice(0, w)),
-            (slice(0, h), slice(right, right + w)),
-            (slice(bottom, bottom + h), slice(0, w)),
-            (slice(bottom, bottom + h), slice(right, right + w)),
-        ]
-
-    def shape(self, frame_shape: Sequence[int]) -> tuple[int, int]:
-        """Shape of the region's array (the mosaic for 'corners')."""
-        if self.kind == "full":
-            return int(frame_shape[0]), int(frame_shape[1])
-        self.pieces(frame_shape)  # validates the fit
-        assert self.size is not None
-        h, w = self.size
-        return (h, w) if self.kind == "center" else (2 * h, 2 * w)
-
-    def mosaic_slices(self, frame_shape: Sequence[int]) -> list[Slices]:
-        """Where each piece goes in the region's array (same order as :meth:`pieces`)."""
-        if self.kind != "corners":
-            h, w = self.shape(frame_shape)
-            return [(slice(0, h), slice(0, w))]
-        assert self.size is not None
-        h, w = self.size
-        return [
-            (slice(0, h), slice(0, w)),
-            (slice(0, h), slice(w, 2 * w)),
-            (slice(h, 2 * h), slice(0, w)),
-            (slice(h, 2 * h), slice(w, 2 * w)),
-        ]
-
-    def extract(self, array: np.ndarray) -> np.ndarray:
-        """The region's pixels of a frame ((H, W) or (H, W, C)) as one new array (mosaic for 'corners')."""
-        array = np.asarray(array)
-        pieces = self.pieces(array.shape)
-        out = np.empty(self.shape(array.shape) + array.shape[2:], array.dtype)
-        for src, dst in zip(pieces, self.mosaic_slices(array.shape)):
-            out[dst] = array[src]
-        return out
-
-
-_REGION_RE = re.compile(r"^(center|centre|corners)(?::(\d+)(?:[x×](\d+))?)?$")
-
-
-def parse_region(spec: str | Region) -> Region:
-    """Parse ``"full"``, ``"center:N"``, ``"center:HxW"``, ``"corners"`` or ``"corners:N"``.
-
-    Raises
-    ------
-    UsageError
-        For any other text (the message lists the accepted forms).
-    """
-    if isinstance(spec, Region):
-        return spec
-    text = str(spec).strip().lower()
-    if text == "full":
-        return Region("full")
-    m = _REGION_RE.match(text)
-    if m:
-        kind = "center" if m.group(1) in ("center", "centre") else "corners"
-        if m.group(2) is None:
-            if kind == "center":
-                raise UsageError(f"region {spec!r}: give the crop size, e.g. 'center:512'")
-            return Region("corners", (128, 128))
-        h = int(m.group(2))
-        w = int(m.group(3)) if m.group(3) else h
-        if kind == "corners" and w != h:
-            raise UsageError(f"region {spec!r}: corner patches are square, e.g. 'corners:128'")
-        if h < 16 or w < 16:
-            raise UsageError(f"region {spec!r}: crops smaller than 16 pixels carry no usable fingerprint")
-        return Region(kind, (h, w))
-    raise UsageError(f"region {spec!r}: expected 'full', 'center:N' (or 'center:HxW'), or 'corners' / 'corners:N'")
-
 
 # ----------------------------------------------------------------------------- intensity and saturation
 
@@ -305,6 +186,21 @@ def intensity(
     if saturated is not None:
         out[saturated] = 0
     return out
+
+
+def region_content_problem(image: np.ndarray, region: Region | str, *, white_level: float | None = None,
+                           black_level: float | Sequence[float] = 0.0, saturation_level: float | None = None,
+                           **_: Any) -> str | None:
+    """Why the region's pixels of a frame hold no PRNU (constant, black or saturated: :mod:`forensics.io.content`),
+    or None.  Levels as :func:`region_residual_and_intensity` (other options are ignored)."""
+    from forensics.io.content import content_problem
+
+    image = np.asarray(image)
+    region = parse_region(region)
+    white = full_scale(image.dtype) if white_level is None else white_level
+    pieces = [image[src] for src in region.pieces(image.shape)]
+    black = _black_array(black_level, pieces[0].shape[:2])
+    return content_problem(pieces, black, white if saturation_level is None else saturation_level)
 
 
 def region_residual_and_intensity(
@@ -387,129 +283,6 @@ def postprocess(k: np.ndarray, region: Region | str, frame_shape: Sequence[int],
     return out
 
 
-# ----------------------------------------------------------------------------- image sets
-
-
-class ImageSet:
-    """An ordered set of images that are loaded one at a time, on demand.
-
-    Parameters
-    ----------
-    loaders : sequence of callables
-        ``loaders[i]()`` returns image ``i`` as an array ((H, W) or (H, W, 3)).
-    sources : sequence of str
-        A name for each image (file path, or a label).
-    name : str
-        Name of the set (for messages and reports).
-
-    Notes
-    -----
-    Build one with :meth:`of` from a dataset folder, a :class:`forensics.io.dataset.Dataset`
-    or a sequence of arrays, paths, frames or zero-argument callables, or with
-    :meth:`from_function` for images rendered on demand (simulations).
-
-    Work items of the execution layer name images by their index in a set, and the set
-    is the items' shared data: on worker processes or a Dask cluster its loaders must be
-    picklable (paths, dataset frames, module-level functions; a set of arrays is copied
-    to every worker).
-    """
-
-    def __init__(self, loaders: Sequence[Callable[[], np.ndarray]], sources: Sequence[str], name: str) -> None:
-        if len(loaders) != len(sources):
-            raise UsageError("ImageSet: one source name per loader is needed")
-        self._loaders = list(loaders)
-        self.sources = [str(s) for s in sources]
-        self.name = str(name)
-
-    def __len__(self) -> int:
-        return len(self._loaders)
-
-    def load(self, index: int) -> np.ndarray:
-        """Image ``index`` (decoded or rendered now; not cached)."""
-        try:
-            image = self._loaders[index]()
-        except InputError:
-            raise
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{self.sources[index]}: cannot read the image ({exc})") from exc
-        return np.asarray(image)
-
-    def subset(self, indices: Sequence[int], name: str | None = None) -> ImageSet:
-        """The images at ``indices`` (nothing is loaded), e.g. to split one set into disjoint halves."""
-        idx = [int(i) for i in indices]
-        return ImageSet([self._loaders[i] for i in idx], [self.sources[i] for i in idx], name or self.name)
-
-    @classmethod
-    def from_function(cls, n: int, render: Callable[[int], np.ndarray], name: str,
-                      sources: Sequence[str] | None = None) -> ImageSet:
-        """``n`` images where image ``i`` is ``render(i)`` (must be deterministic in ``i``)."""
-        if n < 0:
-            raise UsageError(f"ImageSet.from_function: n={n} must be non-negative")
-        names = list(sources) if sources is not None else [f"{name}[{i}]" for i in range(n)]
-        return cls([functools.partial(render, i) for i in range(n)], names, name)
-
-    @classmethod
-    def of(cls, source: Any, name: str | None = None) -> ImageSet:
-        """An :class:`ImageSet` from a folder, a Dataset, or a sequence of images.
-
-        Parameters
-        ----------
-        source : ImageSet, str, PathLike, Dataset or sequence
-            A dataset folder (opened with :func:`forensics.io.dataset.open_dataset`), a
-            Dataset, or a sequence whose items are arrays, image paths, objects with
-            ``load()`` (and ``path``) such as :class:`forensics.io.dataset.Frame`, or
-            zero-argument callables returning an array.
-        name : str, optional
-            Name of the set (default: the folder, or 'set').
-
-        Raises
-        ------
-        InputError
-            If the folder is not a dataset.
-        UsageError
-            If ``source`` is none of the above (e.g. a generator: images are drawn
-            at random and shared out by index, so the set must know how many there are).
-        """
-        from forensics.io.dataset import Dataset, open_dataset
-
-        if isinstance(source, ImageSet):
-            if name is not None:
-                return cls(source._loaders, source.sources, name)
-            return source
-        if isinstance(source, (str, os.PathLike)):
-            source = open_dataset(source)
-        if isinstance(source, Dataset):
-            frames = list(source.frames)
-            return cls([f.load for f in frames], [str(f.path) for f in frames], name or source.root.name or str(source.root))
-        if not (hasattr(source, "__len__") and hasattr(source, "__getitem__")) or isinstance(source, np.ndarray):
-            raise UsageError(
-                "an image set must be a dataset folder, a Dataset, or a sequence of images (arrays, paths, "
-                "frames or callables); generators and single arrays are not accepted"
-            )
-        label = name or "set"
-        loaders: list[Callable[[], np.ndarray]] = []
-        sources: list[str] = []
-        for i in range(len(source)):
-            item = source[i]
-            if isinstance(item, np.ndarray):
-                loaders.append(functools.partial(np.asarray, item))
-                sources.append(f"{label}[{i}]")
-            elif isinstance(item, (str, os.PathLike)):
-                from forensics.io.images import read_image
-
-                loaders.append(functools.partial(read_image, Path(item)))
-                sources.append(str(item))
-            elif hasattr(item, "load"):
-                loaders.append(item.load)
-                sources.append(str(getattr(item, "path", f"{label}[{i}]")))
-            elif callable(item):
-                loaders.append(item)
-                sources.append(f"{label}[{i}]")
-            else:
-                raise UsageError(f"{label}[{i}]: {type(item).__name__} is not an image, a path, a frame or a callable")
-        return cls(loaders, sources, label)
-
-
 # ----------------------------------------------------------------------------- the fingerprint
 
 
@@ -578,35 +351,132 @@ class Fingerprint:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Fingerprint:
-        """Read a fingerprint written by :meth:`save`.
+        """Read a fingerprint written by :meth:`save`, checked (:func:`check_fingerprint`).
 
         Raises
         ------
         InputError
-            If the file is missing, not a fingerprint, or inconsistent.
+            If the file is missing, not a fingerprint, damaged (truncated, metadata missing a key or of the
+            wrong type) or inconsistent, or its ``K`` holds no usable pattern.
         """
         path = Path(path)
         if not path.is_file():
             raise InputError(f"{path}: no such fingerprint file; check the path")
         try:
-            with np.load(path, allow_pickle=False) as data:
-                k = np.asarray(data["K"], np.float32)
-                meta = json.loads(str(data["meta"][()]))
-        except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
-            raise InputError(f"{path}: not a fingerprint file ({exc}); build one with FingerprintBuilder") from exc
-        if meta.get("format") != FORMAT:
-            raise InputError(f"{path}: unknown fingerprint format {meta.get('format')!r} (expected {FORMAT})")
-        if list(k.shape) != list(meta.get("shape", [])):
-            raise InputError(f"{path}: K has shape {k.shape} but the provenance says {meta.get('shape')}")
-        return cls(
-            K=k,
-            region=meta["region"],
-            sigma=float(meta["sigma"]),
-            files=list(meta["files"]),
-            n_images=int(meta["n_images"]),
-            frame_shape=tuple(meta["frame_shape"]),  # type: ignore[arg-type]
-            parameters=dict(meta.get("parameters", {})),
-        )
+            with open(path, "rb") as handle:  # ours to close, whatever np.load makes of the bytes
+                k, meta = _read_npz(handle, path)
+        except _READ_ERRORS as exc:
+            raise InputError(f"{path}: not a fingerprint file, or a damaged one ({_one_line(exc)}); build it again "
+                             "with 'forensics fingerprint build'") from exc
+        fields = _metadata(meta, path)
+        if tuple(k.shape) != fields.pop("_shape"):
+            raise InputError(f"{path}: K has shape {k.shape} but the metadata says {meta['shape']}: a damaged "
+                             "fingerprint file; build it again")
+        fp = cls(K=k, **fields)
+        check_fingerprint(fp, str(path))
+        return fp
+
+
+def _read_npz(handle: Any, path: Path) -> tuple[np.ndarray, Any]:
+    """``K`` and the parsed metadata of an open fingerprint file."""
+    data = np.load(handle, allow_pickle=False)
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(f"{path}: a single array, not a fingerprint file; build one with 'forensics fingerprint "
+                         "build'")
+    with data:
+        missing = [key for key in ("K", "meta") if key not in data.files]
+        if missing:
+            raise InputError(f"{path}: no '{missing[0]}' in the file: not a fingerprint file; build one with "
+                             "'forensics fingerprint build'")
+        return np.asarray(data["K"], np.float32), json.loads(str(data["meta"][()]))
+
+
+#: What reading a damaged or foreign ``.npz`` can raise (a truncated zip, a cut member, a wrong type, …).
+_READ_ERRORS = (OSError, EOFError, ValueError, KeyError, TypeError, IndexError, zipfile.BadZipFile, zlib.error)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _metadata(meta: Any, path: Path) -> dict[str, Any]:
+    """The fields of a fingerprint's metadata, each checked for presence and type (one error naming the key)."""
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: its metadata is a JSON {type(meta).__name__}, not an object: a damaged fingerprint "
+                         "file; build it again")
+    if meta.get("format") != FORMAT:
+        raise InputError(f"{path}: unknown fingerprint format {meta.get('format')!r} (expected {FORMAT})")
+
+    def field_of(key: str, ok: Callable[[Any], bool], expected: str, default: Any = _MISSING) -> Any:
+        if key not in meta:
+            if default is not _MISSING:
+                return default
+            raise InputError(f"{path}: metadata key '{key}' is missing: a damaged fingerprint file; build it again")
+        value = meta[key]
+        if not ok(value):
+            raise InputError(f"{path}: metadata '{key}' is {value!r:.60}, not {expected}: a damaged fingerprint file; "
+                             "build it again")
+        return value
+
+    def whole(v: Any) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    def pair(v: Any) -> bool:
+        return isinstance(v, list) and len(v) == 2 and all(whole(x) and x > 0 for x in v)
+
+    region = field_of("region", lambda v: isinstance(v, str) and _parses(v), "a region ('full', 'center:N', 'corners')")
+    sigma = field_of("sigma", lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                     and v > 0, "a positive number")
+    files = field_of("files", lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of names")
+    n_images = field_of("n_images", lambda v: whole(v) and v >= 0, "a whole number ≥ 0")
+    frame = field_of("frame_shape", pair, "two positive whole numbers")
+    field_of("shape", pair, "two positive whole numbers")
+    parameters = field_of("parameters", lambda v: isinstance(v, dict), "an object", {})
+    return {"region": region, "sigma": float(sigma), "files": list(files), "n_images": int(n_images),
+            "frame_shape": (int(frame[0]), int(frame[1])), "parameters": dict(parameters),
+            "_shape": tuple(meta["shape"])}
+
+
+_MISSING = object()
+
+
+def _parses(spec: str) -> bool:
+    try:
+        parse_region(spec)
+    except (InputError, UsageError):
+        return False
+    return True
+
+
+def check_fingerprint(fp: Fingerprint, name: str = "fingerprint") -> None:
+    """Refuse a fingerprint that cannot be matched: ``K`` not 2-D, not of its region's shape in its frame,
+    holding NaN or infinite values, or constant (no pattern: e.g. built from content-free frames).
+
+    Raises
+    ------
+    InputError
+        Naming ``name`` and what is wrong.
+    """
+    k = np.asarray(fp.K)
+    if k.ndim != 2 or k.size == 0:
+        raise InputError(f"{name}: K has shape {k.shape}, not a 2-D array: a damaged fingerprint; build it again")
+    try:
+        expected = parse_region(fp.region).shape(fp.frame_shape)
+    except (InputError, UsageError, TypeError, ValueError) as exc:
+        raise InputError(f"{name}: region {fp.region!r} and frame {fp.frame_shape!r} do not agree ({_one_line(exc)}): "
+                         "a damaged fingerprint; build it again") from exc
+    if tuple(k.shape) != tuple(expected):
+        raise InputError(f"{name}: K is {k.shape[0]}×{k.shape[1]} but region {fp.region} of a "
+                         f"{fp.frame_shape[0]}×{fp.frame_shape[1]} frame is {expected[0]}×{expected[1]}: a damaged "
+                         "fingerprint; build it again")
+    bad = int(k.size - np.count_nonzero(np.isfinite(k)))
+    if bad:
+        raise InputError(f"{name}: K holds {bad} NaN or infinite value(s) of {k.size}: a damaged fingerprint, which "
+                         "cannot be matched; build it again")
+    if float(k.min()) == float(k.max()):
+        raise InputError(f"{name}: K is constant ({float(k.min()):g} everywhere): it holds no pattern (built from "
+                         "content-free frames?); build it again from exposed images")
 
 
 @dataclass
@@ -615,7 +485,8 @@ class FingerprintSums:
 
     One chunk of a build (what a work item returns, :func:`chunk_sums`) or the running total of a
     :class:`FingerprintBuilder`.  ``files`` names the images in order; ``excluded`` counts the pixels
-    with zero weight (saturated); the frame geometry and pixel type let chunks be checked against each
+    with zero weight (saturated); ``skipped`` lists the content-free frames left out, ``(source, why)``
+    (:mod:`forensics.io.content`); the frame geometry and pixel type let chunks be checked against each
     other before they are added.
     """
 
@@ -625,6 +496,7 @@ class FingerprintSums:
     excluded: int
     frame_shape: tuple[int, int]
     dtype: np.dtype
+    skipped: list[tuple[str, str]] = field(default_factory=list)
 
     @classmethod
     def zeros(cls, shape: tuple[int, int], frame_shape: tuple[int, int], dtype: np.dtype) -> FingerprintSums:
@@ -636,12 +508,18 @@ class FingerprintSums:
         """Number of images summed."""
         return len(self.files)
 
+    @property
+    def n_frames(self) -> int:
+        """Frames offered: summed and skipped (what fixes the chunks, so they do not depend on the content)."""
+        return len(self.files) + len(self.skipped)
+
     def add(self, other: FingerprintSums) -> None:
         """Add ``other``'s sums to these, in place (the one way partial sums are combined)."""
         self.num += other.num
         self.den += other.den
         self.files.extend(other.files)
         self.excluded += other.excluded
+        self.skipped.extend(other.skipped)
 
     def clear(self) -> None:
         """Back to zero, keeping the arrays (a builder reuses them chunk after chunk)."""
@@ -649,6 +527,7 @@ class FingerprintSums:
         self.den.fill(0)
         self.files = []
         self.excluded = 0
+        self.skipped = []
 
 
 class FingerprintBuilder:
@@ -736,8 +615,18 @@ class FingerprintBuilder:
 
     @property
     def n_images(self) -> int:
-        """Number of images added so far."""
+        """Number of images added so far (summed; content-free frames are not)."""
         return sum(s.n_images for s in (self._total, self._chunk) if s is not None)
+
+    @property
+    def skipped(self) -> list[tuple[str, str]]:
+        """Content-free frames left out so far, ``(source, why)``, in order."""
+        return [item for sums in (self._total, self._chunk) if sums is not None for item in sums.skipped]
+
+    @property
+    def n_frames(self) -> int:
+        """Frames offered so far: summed and left out."""
+        return self.n_images + len(self.skipped)
 
     def _accept(self, shape: tuple[int, int], dtype: np.dtype, name: str) -> None:
         """Take the first frame's geometry and pixel type, or check a later one against them."""
@@ -766,7 +655,7 @@ class FingerprintBuilder:
             If its size or pixel type differs from the first frame's.
         """
         image = np.asarray(image)
-        name = str(source) if source is not None else f"image #{self.n_images + 1}"
+        name = str(source) if source else f"image #{self.n_frames + 1}"
         if image.ndim not in (2, 3):
             raise InputError(f"{name}: array of shape {image.shape} is not an image")
         self._accept((int(image.shape[0]), int(image.shape[1])), image.dtype, name)
@@ -775,18 +664,27 @@ class FingerprintBuilder:
             self._chunk = self._new_sums()
             if not self._one_chunk:
                 self._total = self._new_sums()
-        elif self._chunk.n_images == CHUNK_IMAGES:
+        elif self._chunk.n_frames == CHUNK_IMAGES:
             if self._one_chunk:
                 raise UsageError(f"a work item sums at most {CHUNK_IMAGES} images")
             self._fold_chunk()
-        w, i = self._residual_and_intensity(image)
         chunk = self._chunk
+        problem = self._content_problem(image)
+        if problem is not None:  # left out, and said so in the result: it holds no pattern to estimate
+            chunk.skipped.append((name, problem))
+            return
+        w, i = self._residual_and_intensity(image)
         chunk.excluded += int(np.count_nonzero(i == 0))
         w *= i
         chunk.num += w
         np.multiply(i, i, out=i)
         chunk.den += i
         chunk.files.append(str(source) if source is not None else "")
+
+    def _content_problem(self, image: np.ndarray) -> str | None:
+        """Why the frame's pixels in the region hold no pattern (:mod:`forensics.io.content`), or None."""
+        return region_content_problem(image, self.region, white_level=self.white_level, black_level=self.black_level,
+                                      saturation_level=self.saturation_level)
 
     def _fold_chunk(self) -> None:
         """Add the filled chunk to the total and start a new one."""
@@ -808,7 +706,7 @@ class FingerprintBuilder:
         self._accept(tuple(sums.frame_shape), sums.dtype, name)  # type: ignore[arg-type]
         if self._total is None:
             self._total = self._new_sums()
-        if self._chunk is not None and self._chunk.n_images:
+        if self._chunk is not None and self._chunk.n_frames:
             self._fold_chunk()
         self._total.add(sums)
 
@@ -849,8 +747,27 @@ class FingerprintBuilder:
             np.divide(num, den, out=k[rows], where=den > 0, casting="same_kind")
         return k
 
-    def result(self) -> Fingerprint:
-        """The post-processed fingerprint (the builder can keep accumulating afterwards)."""
+    def result(self, name: str | None = None) -> Fingerprint:
+        """The post-processed fingerprint (the builder can keep accumulating afterwards).
+
+        Content-free frames (:mod:`forensics.io.content`) were left out; they are listed in the result's
+        ``parameters['excluded_frames']``.
+
+        Parameters
+        ----------
+        name : str, optional
+            The image set's name, for the error below.
+
+        Raises
+        ------
+        InputError
+            Every frame was content-free: there is nothing to estimate a fingerprint from.
+        """
+        skipped = self.skipped
+        if self.n_images == 0 and skipped:
+            raise InputError(f"{name or 'the images'}: all {len(skipped)} frame(s) given for the fingerprint are "
+                             f"content-free, so there is no pattern to estimate (first, {skipped[0][0]}: {skipped[0][1]});"
+                             " give exposed images (20-50 bright, flat, unsaturated ones are best)")
         k = self._postprocess(self.raw_estimate())
         assert self.frame_shape is not None
         excluded = sum(s.excluded for s in (self._total, self._chunk) if s is not None)
@@ -870,6 +787,7 @@ class FingerprintBuilder:
                 "saturation_dilate": self.saturation_dilate,
                 "rolloff": self.rolloff,
                 "excluded_pixel_fraction": excluded / max(1, self.n_images * k.size),
+                "excluded_frames": [{"file": f, "reason": why} for f, why in skipped],
                 "forensics_version": __version__,
             },
         )
@@ -961,7 +879,7 @@ def build_fingerprints(
         builder.merge(sums)
         remaining[j] -= 1
         if remaining[j] == 0:
-            acc[j] = builder.result()
+            acc[j] = builder.result(jobs[j].images.name)
             builders[j] = None  # free the sums
         return acc
 
@@ -990,9 +908,13 @@ def build_fingerprint(
     total: int | None = None,
     executor: Executor | None = None,
     checkpoint: Checkpoint | None = None,
+    name: str | None = None,
     **options: Any,
 ) -> Fingerprint:
     """Fingerprint from frames, streamed (one frame in memory at a time per worker).
+
+    Content-free frames (constant, black or saturated: :mod:`forensics.io.content`) are left out and
+    listed in ``parameters['excluded_frames']``; when every frame is, an :class:`InputError` names the set.
 
     Parameters
     ----------
@@ -1017,11 +939,15 @@ def build_fingerprint(
         themselves, so give paths or dataset frames rather than arrays.
     checkpoint : Checkpoint, optional
         Resume an interrupted build of a sequence (see :func:`build_fingerprints`).
+    name : str, optional
+        The set's name in messages (default: a Dataset's folder, else 'the images').
 
     Raises
     ------
     UsageError
         If ``images`` is empty, or an iterator is given with an executor that is not in-process.
+    InputError
+        Every frame is content-free, frames differ in size or pixel type, or cannot be read.
     """
     from forensics.io.dataset import Dataset
 
@@ -1029,7 +955,9 @@ def build_fingerprint(
     names = None if sources is None else [str(s) for s in sources]
     if isinstance(images, (ImageSet, Dataset)) or (
             hasattr(images, "__len__") and hasattr(images, "__getitem__") and not isinstance(images, np.ndarray)):
-        image_set = ImageSet.of(images, "fingerprint")
+        label = name or (images.name if isinstance(images, ImageSet) else
+                         str(images.root) if isinstance(images, Dataset) else "the images")
+        image_set = ImageSet.of(images, label)
         if names is None and not isinstance(images, (ImageSet, Dataset)):
             names = [_source_name(images[i]) for i in range(len(image_set))]  # type: ignore[index]
         if names is not None:
@@ -1042,11 +970,11 @@ def build_fingerprint(
     if executor is not None and executor.backend != "in-process":
         raise UsageError("an iterator of images is read in this process; give a sequence of paths or frames to "
                          "build a fingerprint on worker processes or a cluster")
-    return _build_streamed(builder, images, names, progress, total)
+    return _build_streamed(builder, images, names, progress, total, name)
 
 
 def _build_streamed(builder: FingerprintBuilder, images: Iterable[Any], names: list[str] | None,
-                    progress: Progress, total: int | None) -> Fingerprint:
+                    progress: Progress, total: int | None, name: str | None = None) -> Fingerprint:
     """Feed an iterator of frames to ``builder`` one at a time."""
     name_iter = iter(names) if names is not None else None
     for item in progress(images, total=total, desc="fingerprint"):
@@ -1056,6 +984,6 @@ def _build_streamed(builder: FingerprintBuilder, images: Iterable[Any], names: l
                 source = getattr(item, "path", None)
             item = item.load()
         builder.add(item, source=source)
-    if builder.n_images == 0:
+    if builder.n_frames == 0:
         raise UsageError("no images to build a fingerprint from; give at least one (20-50 flat images are usual)")
-    return builder.result()
+    return builder.result(name)

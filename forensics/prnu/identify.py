@@ -3,68 +3,11 @@
 For every query image and every candidate fingerprint ``K`` the PCE of :mod:`forensics.prnu.match` is
 computed over every geometry searched, and the best device is the one with the highest PCE.
 
-Geometry searched (per fingerprint; counted in the decision, see below)
-------------------------------------------------------------------------
-**Orientation** (``rotations``): ``'auto'`` tries the image as stored if it fits in the sensor's frame,
-else both quarter turns (a portrait picture written rotated); ``'all'`` every quarter turn (0°, 90°,
-180°, 270°) in which it fits; ``'none'`` the image as stored only.
-
-**Aligned** images: an image of the frame's size at scale 1 is correlated as
-:func:`forensics.prnu.match.score_query` does — its residual over the fingerprint's region with
-``I·K`` — and scored at zero shift (one position) by the block-phase PCE below.
-
-**Crops** (``crop_search``): an image smaller than the frame is taken as a crop at an unknown offset.
-The query's ``W·I`` (residual times intensity, :func:`~forensics.prnu.match.prepare_query` on the whole
-image) is correlated with ``K`` at every offset at which the crop lies inside the fingerprint's region,
-or the region inside the crop (per axis), and inside the frame.  Both arrays are zero-padded to a
-common canvas whose side is the longer of the two on each axis, so *every* circular shift pairs the same
-number of real pixels: the correlation's null variance depends on the shift only through the JPEG
-block phase, which the statistic below accounts for.  Crops reaching outside a ``center:N``
-fingerprint's region are therefore not searched (build full-frame fingerprints to identify crops);
-``corners`` fingerprints take aligned images only.
-
-**Scales** (``scales``, resized or digitally zoomed images): for each scale ``s`` of the grid the
-*fingerprint* is resampled by ``s`` (:func:`resample`, an antialiased triangle kernel) and searched as
-for a crop of the resampled frame.  The fingerprint is resampled rather than the query (by ``1/s``)
-because the query's residual then stays on its own pixel grid, with the noise statistics the PCE's null
-assumes, instead of an interpolated (correlated) residual; the FFTs are ``s²`` smaller; and the camera
-or editor did exactly this to the pattern.  The grid (:class:`ScaleSearch`) is geometric,
-``s_k = hi·(1 + ρ)^(−k)`` down to ``lo``, with ``ρ = 4·e/L`` for a query whose longer side is ``L``
-pixels: a true scale lies within a factor ``(1 + ρ)^½`` of a grid point, so the query's pixels are at
-most ``L·ρ/4 = e`` pixels off the fingerprint's grid at its edges when aligned at its centre
-(``e = 0.5`` pixel by default: 357 scales over 0.5–1.0 for ``L = 1024``; scales at which the image
-does not fit in the resampled frame are left out, so a full frame is searched at scale 1 only).  A linear step can be given
-instead (its grid error is reported).  The scales implied by the image's size (a whole frame resized
-with its aspect ratio) are tried too.  The search is bounded: more than ``max_scales`` scales for one
-image is refused before any work.
-
-The statistic: block-phase PCE
-------------------------------
-The PCE of :mod:`forensics.prnu.match` divides the squared peak by one energy, the mean squared
-correlation over all shifts.  JPEG's 8×8 blocks break that: residuals and fingerprints of JPEG images
-are noisier on block boundaries, so the correlation's null variance is periodic in the shift, and at
-the shifts that align the query's block grid with the fingerprint's — zero shift for a full frame, the
-true offset for a crop — it is 1.6–1.85 times the mean (Dresden Nikons).  The plain PCE then exceeds its
-χ²₁ null there: non-matching Dresden pairs reached PCE 21 at zero shift (p ≈ 4·10⁻⁶) and 48 in crop
-searches whose Šidák bound was 40.  Here each shift's energy is the mean over the shifts of its own
-phase ``(dy mod 8, dx mod 8)`` (the 11×11 window around the peak left out; shrunk towards the
-all-shift energy by :data:`PHASE_PRIOR` shifts for small canvases), so ``z = peak/√energy`` is standard
-normal under the null at every shift.  On images without blocks (simulations, PNG, resized images) all
-phases agree and the value is the plain PCE; on JPEG frames and crops it is about half the plain PCE
-(reported beside it as ``pce_global``, for comparison with ``forensics fingerprint match``).
-
-The grid first: a weighted search
----------------------------------
-The same energies show where the query's JPEG grid meets the fingerprint's: the aligning phase is the
-one with the largest null energy (:func:`_grid_phase`; found only when clearly above the others, so not
-on images without blocks).  A crop cut from a decoded JPEG lies on the camera's grid, so its true offset
-is one of the ``n_A = n/64`` offsets of that phase.  Those offsets share half of the false-alarm budget
-and the others the other half: position weights ``w_A = n/(2·n_A)`` and ``w_R = n/(2·(n − n_A))``, which
-sum to ``n`` (weighted Bonferroni), and a peak's tail is ``Q(z)/w``.  On the Dresden 1024² crops the
-threshold falls from PCE 40 to 33 on the grid (to 41.5 off it): 83 % of crops attributed instead of
-76 %, with no false attribution.  A crop written again as JPEG after cropping carries its own grid and is
-found off the camera's, at ``w_R``.  The choice of phase uses the energies only, never the normalised
-peaks, so the bound holds.
+The search is described where it is computed: the geometry (orientations, crops, scales) in
+:mod:`forensics.prnu.geometry`, the statistic (block-phase PCE, the weighted search on a JPEG grid) in
+:mod:`forensics.prnu.blockpce`, the compressed pre-screen of large databases in
+:mod:`forensics.prnu.prescreen`; the correlation and its tail statistics, shared with
+:mod:`forensics.prnu.cluster`, in :mod:`forensics.prnu.correlation`.
 
 Decision (Šidák over everything searched)
 -----------------------------------------
@@ -76,27 +19,36 @@ probability is
 
     p_FA = 1 − (1 − Q(z_best)/w_best)^n,     n = Σ_j positions_j · scales_j · rotations_j   (Šidák)
 
-(``w = 1`` except on JPEG crops, above; candidates are ranked by ``Q(z)/w``)
+with position weights ``w`` that sum to ``n`` (a weighted Šidák/Bonferroni split of the budget; candidates
+are ranked by ``Q(z)/w``), and the image is *attributed* when ``p_FA ≤ pfa``, else *unknown*.  Neighbouring
+positions and scales are positively correlated, which makes Šidák conservative for Gaussian ``z``, so
+searching more never inflates false alarms; measured on simulated devices outside the set the corrected
+``p_FA`` is close to uniform (crop searches over ~10⁴ offsets: 5, 13 and 36 of 60 at 0.05, 0.2 and 0.5;
+aligned images: 9 and 39 of 200 at 0.05 and 0.2).  The equivalent PCE threshold,
+``Q⁻¹(1 − (1 − pfa)^(w/n))²`` for the best peak's weight, is reported with each image.
 
-and the image is *attributed* when ``p_FA ≤ pfa``, else *unknown*.  Neighbouring positions and scales
-are positively correlated, which makes Šidák conservative for Gaussian ``z``, so searching more never
-inflates false alarms; measured on simulated devices outside the set the corrected ``p_FA`` is close to
-uniform (crop searches over ~10⁴ offsets: 5, 13 and 36 of 60 at 0.05, 0.2 and 0.5; aligned images: 9
-and 39 of 200 at 0.05 and 0.2).
-The equivalent PCE threshold, ``Q⁻¹(1 − (1 − pfa)^(w/n))²`` for the best peak's weight, is reported with each image.
+**Two hypotheses, two shares.**  An image of a fingerprint's frame size is most likely the camera's own
+picture, aligned (one position per fingerprint and orientation); but in a database of many sensor sizes
+it is also a possible crop of every larger sensor, at ~10⁶ offsets each.  With one count for both, the
+crop searches set the threshold of the aligned test too: a natural Dresden D70 image scores PCE 27
+(p ≈ 10⁻⁷) at zero shift against its own camera, but with two D200 fingerprints in the database its
+``n`` is 1,025,894 and the threshold PCE 36, so it came out unknown.  The aligned positions (``n_al``:
+same-size, scale 1, zero shift, over all fingerprints and orientations) therefore get their own share
+:data:`ALIGNED_SHARE` of the budget and the searched positions (``n_se``: crops and scales) the rest:
+``w_al = share·n/n_al`` and ``w_se = (1 − share)·n/n_se`` (times the JPEG-grid weight of
+:mod:`forensics.prnu.blockpce` inside a search), which sum to ``n``, so the bound holds whichever
+hypothesis is true.  For the D70 image (4 aligned tests, 1,025,890 crop positions) the aligned threshold
+falls to PCE 13.4 and it is attributed, while the crop positions' threshold rises from 36.0 to 37.4.  With only
+one kind of position every weight is 1, as before.  Both shares, their counts
+and their thresholds are reported with each image (``budget``).
 
-Pre-screen (:class:`Prescreen`)
--------------------------------
-For large databases, candidates are first ranked by a compressed correlation: a fixed, seeded sparse
-±1 random projection (CountSketch: every pixel goes to one of ``d`` buckets with a random sign) of each
-fingerprint and of each aligned query's ``W·I``.  Inner products are preserved in expectation, with a
-null standard deviation ``1/√d`` of the normalised correlation, so a match of PCE ``p`` over ``n``
-pixels has a sketch z-score of about ``√(p·d/n)`` (``√(p/4)`` at the default ``d = n/4``).  The top
-``keep`` candidates get the full PCE.  Only aligned images (zero shift, scale 1) are pre-screened;
-crop and scale searches score every candidate.  Dropped candidates still count in ``n`` above, so the
-false-alarm bound holds; a dropped true device can only turn an attribution into *unknown*.  How often
-that happens is measured by :func:`prescreen_miss_rate` on data with known truth, never assumed.
-``prescreen='auto'`` enables it for more than :data:`PRESCREEN_AUTO_MIN` fingerprints.
+**Ambiguity.**  When more than one device reaches the decision (each one's ``p_FA`` at most ``pfa``) the
+image is *ambiguous* and no device is named: the candidates are listed instead (``matches``).  This is
+what two entries of one sensor (or a false alarm) give; picking one, for instance the first by name
+among identical fingerprints, would state a certainty the data do not have.
+
+**Content-free images** (constant, black or saturated: :mod:`forensics.io.content`) are not scored:
+their decision is *excluded*, with the reason; a set of nothing but such images is refused.
 
 Execution: one work item per query (a path or a dataset frame, read by the worker), the fingerprints
 (and their sketches) shipped once per worker (``shared``); results in query order on every backend.
@@ -106,32 +58,51 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field, replace
-from functools import lru_cache
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.fft
-import scipy.sparse
-from scipy import special
 
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.parallel import Executor, resolve
 from forensics._shared.progress import Progress, no_progress
-from forensics.prnu.fingerprint import Fingerprint, Region, parse_region
-from forensics.prnu.match import (
-    QUERY_SIGMA,
+from forensics.prnu.blockpce import _block_pce, _Peak
+from forensics.prnu.correlation import (
     _centred,
     _false_alarm,
-    _is_reference,
-    _PreparedImage,
+    _log_tail,
     _shift_indices,
     _Spectrum,
-    _sum_sq,
+    _z,
+    pce_threshold,
+    surface,
+)
+from forensics.prnu.fingerprint import Fingerprint, check_fingerprint, parse_region, region_content_problem
+from forensics.prnu.geometry import (
+    _ROTATION_MODES,
+    ScaleSearch,
+    _plan,
+    _Reference,
+    _scale_info,
+    _Test,
+    parse_scales,
+    resample,
+)
+from forensics.prnu.match import QUERY_SIGMA, _is_reference, _PreparedImage
+from forensics.prnu.prescreen import (
+    PRESCREEN_AUTO_MIN,
+    Prescreen,
+    PrescreenMissRate,
+    _prescreen,
+    _prescreen_config,
+    _screen,
+    _with_sketches,
+    sketch,
 )
 from forensics.prnu.residual import default_workers
 
 __all__ = [
+    "ALIGNED_SHARE",
     "CORRECTION",
     "DEFAULT_PFA",
     "PRESCREEN_AUTO_MIN",
@@ -150,212 +121,14 @@ __all__ = [
 
 #: Default false-alarm probability of an attribution, over all fingerprints and positions searched.
 DEFAULT_PFA = 1e-3
-#: ``prescreen='auto'`` is on above this many fingerprints (below it, full PCE on all is cheap enough).
-PRESCREEN_AUTO_MIN = 50
+#: Share of the false-alarm budget given to the aligned positions when crops or scales are searched too.
+ALIGNED_SHARE = 0.5
 #: The decision rule, as reported.
 CORRECTION = ("weighted Šidák: p_FA = 1 − (1 − Q(z_best)/w_best)^n, n = Σ over compatible fingerprints of "
-              "positions × scales × rotations searched; z = √PCE; w = 1 except on a JPEG crop (offsets on its "
-              "detected block grid share half the budget: w > 1 there, < 1 elsewhere); attributed when p_FA ≤ pfa")
-#: Seed of the pre-screen's projection (fixed: a fingerprint's sketch must not change between runs).
-SKETCH_SEED = 0x1D_2012
-#: Period of the block grid whose phase the correlation's null variance depends on (JPEG's 8×8 blocks).
-BLOCK = 8
-#: Weight, in shifts, of the all-shift energy in each phase's energy (shrinks small canvases' noisy estimates).
-PHASE_PRIOR = 256
-#: Share of a search's false-alarm budget given to the offsets on the query's detected JPEG grid.
-GRID_SHARE = 0.5
-#: A block phase is the grid when its null energy exceeds the mean by this fraction (Dresden: 0.6–0.85) …
-GRID_MIN_EXCESS = 0.1
-#: … and by this many standard errors of its estimate.
-GRID_SIGMAS = 8.0
-#: A whole-frame resize may differ from the scaled frame's size by rounding, up to this many pixels.
-_SIZE_SLACK = 2
-_ROTATION_MODES = ("auto", "none", "all")
-
-
-# ----------------------------------------------------------------------------- settings objects
-
-
-@dataclass(frozen=True)
-class ScaleSearch:
-    """The scales searched for resized or digitally zoomed images.
-
-    A scale ``s`` is query pixels per sensor pixel: 0.5 is a picture shrunk to half its width, 1.5 a
-    digital zoom of 1.5× (a centre crop enlarged).
-
-    Attributes
-    ----------
-    lo, hi : float
-        The range searched (default 0.5–1.0).
-    step : float, optional
-        A linear step; default: the geometric step ``ρ = 4·max_error/L`` for a query whose longer side is
-        ``L`` pixels (see the module notes).
-    max_error : float
-        Largest misregistration, in query pixels at the image's edges, of the automatic step.
-    from_size : bool
-        Also try the scales implied by the query's size (a whole frame resized, aspect ratio kept).
-    values : tuple of float, optional
-        Explicit scales instead of a range.
-    max_scales : int
-        Refuse a grid of more scales than this for one image (bounds the time: each scale costs about
-        one FFT-based correlation per fingerprint at ``s²`` the frame's size).
-    """
-
-    lo: float = 0.5
-    hi: float = 1.0
-    step: float | None = None
-    max_error: float = 0.5
-    from_size: bool = True
-    values: tuple[float, ...] | None = None
-    max_scales: int = 400
-
-    def __post_init__(self) -> None:
-        if self.values is not None:
-            if not self.values or any(not (0.05 <= v <= 8.0) for v in self.values):
-                raise UsageError(f"scales {self.values}: give scales between 0.05 and 8")
-            return
-        if not (0.05 <= self.lo <= self.hi <= 8.0):
-            raise UsageError(f"scale range {self.lo}:{self.hi}: need 0.05 ≤ lo ≤ hi ≤ 8")
-        if self.step is not None and self.step <= 0:
-            raise UsageError(f"scale step {self.step}: must be positive")
-        if self.max_error <= 0:
-            raise UsageError(f"max_error {self.max_error}: must be positive (pixels)")
-
-    def grid(self, side: int, floor: float = 0.0, check: bool = True) -> tuple[float, ...]:
-        """The scales for a query whose longer side is ``side`` pixels, largest first.
-
-        Parameters
-        ----------
-        side : int
-        floor : float
-            Smallest scale at which the query still fits in the resampled frame: scales below it are
-            left out (a full frame, for instance, is searched at scale 1 only).
-        check : bool
-            Refuse more than ``max_scales`` scales.
-
-        Raises
-        ------
-        UsageError
-            More than ``max_scales`` scales.
-        """
-        lo = max(self.lo, floor)
-        if self.values is not None:
-            scales = sorted({float(v) for v in self.values if v >= floor}, reverse=True)
-        elif lo > self.hi:
-            scales = []
-        elif lo == self.hi:
-            scales = [self.hi]
-        elif self.step is not None:
-            n = math.floor((self.hi - lo) / self.step + 1e-9)
-            scales = [self.hi - k * self.step for k in range(n + 1)]
-        else:
-            rho = self.ratio(side)
-            n = math.ceil(math.log(self.hi / lo) / math.log1p(rho) - 1e-9)
-            scales = [self.hi / (1 + rho) ** k for k in range(n + 1)]
-        if check and len(scales) > self.max_scales:
-            raise UsageError(
-                f"the scale search {self.describe()} needs {len(scales)} scales for a {side}-pixel image (more than "
-                f"max_scales={self.max_scales}); narrow the range, coarsen the step or raise the limit")
-        return tuple(scales)
-
-    def ratio(self, side: int) -> float:
-        """The automatic geometric step ``ρ = 4·max_error/L``."""
-        return 4.0 * self.max_error / max(1, int(side))
-
-    def grid_error(self, side: int) -> float:
-        """Largest misregistration (query pixels, at the image's edges) between a true scale and the grid."""
-        if self.values is not None:
-            return math.nan  # explicit scales: no statement about scales between them
-        if self.step is None:
-            return side * self.ratio(side) / 4.0
-        return side * self.step / (4.0 * self.lo)
-
-    def bounds(self) -> tuple[float, float]:
-        """The smallest and largest scale searched."""
-        if self.values is not None:
-            return min(self.values), max(self.values)
-        return self.lo, self.hi
-
-    def describe(self) -> str:
-        if self.values is not None:
-            return ",".join(f"{v:g}" for v in self.values)
-        step = f"step {self.step:g}" if self.step is not None else f"grid error ≤ {self.max_error:g} px"
-        return f"{self.lo:g}–{self.hi:g} ({step})"
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"lo": self.lo, "hi": self.hi, "step": self.step, "max_error_px": self.max_error,
-                "from_size": self.from_size, "values": list(self.values) if self.values is not None else None,
-                "max_scales": self.max_scales}
-
-
-def parse_scales(text: str) -> ScaleSearch:
-    """``'LO:HI'`` (automatic step), ``'LO:HI:STEP'``, or a comma list ``'0.5,0.7'``.
-
-    Raises
-    ------
-    UsageError
-        Anything else.
-    """
-    t = str(text).strip()
-    try:
-        if ":" in t:
-            parts = [float(p) for p in t.split(":")]
-            if len(parts) == 2:
-                return ScaleSearch(parts[0], parts[1])
-            if len(parts) == 3:
-                return ScaleSearch(parts[0], parts[1], step=parts[2])
-        else:
-            return ScaleSearch(values=tuple(float(p) for p in t.split(",") if p.strip()))
-    except ValueError:
-        pass
-    raise UsageError(f"scales {text!r}: give LO:HI (e.g. 0.5:1.0), LO:HI:STEP (0.5:1.0:0.05) or a list (0.5,0.75)")
-
-
-@dataclass(frozen=True)
-class Prescreen:
-    """The compressed pre-screen (module notes).
-
-    Attributes
-    ----------
-    compression : int
-        Sketch length ``d = n / compression`` for ``n`` pixels (at least ``min_dim``, at most ``n``).
-    min_dim : int
-    keep : int, optional
-        Candidates kept for the full PCE; default ``max(min_keep, ⌈keep_fraction·N⌉)``.
-    min_keep : int
-    keep_fraction : float
-    seed : int
-        Seed of the projection (fixed, so that sketches are comparable across runs).
-    """
-
-    compression: int = 4
-    min_dim: int = 1024
-    keep: int | None = None
-    min_keep: int = 10
-    keep_fraction: float = 0.1
-    seed: int = SKETCH_SEED
-
-    def __post_init__(self) -> None:
-        if self.compression < 1 or self.min_dim < 16:
-            raise UsageError("prescreen: compression must be ≥ 1 and min_dim ≥ 16")
-        if self.keep is not None and self.keep < 1:
-            raise UsageError(f"prescreen keep={self.keep}: keep at least one candidate")
-        if not (0 < self.keep_fraction <= 1) or self.min_keep < 1:
-            raise UsageError("prescreen: keep_fraction must be in (0, 1] and min_keep ≥ 1")
-
-    def dim(self, n_pixels: int) -> int:
-        """Sketch length for arrays of ``n_pixels``."""
-        return int(min(n_pixels, max(self.min_dim, n_pixels // self.compression)))
-
-    def keep_for(self, n_fingerprints: int) -> int:
-        """Candidates kept out of ``n_fingerprints``."""
-        if self.keep is not None:
-            return self.keep
-        return max(self.min_keep, math.ceil(self.keep_fraction * n_fingerprints))
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"compression": self.compression, "min_dim": self.min_dim, "keep": self.keep,
-                "min_keep": self.min_keep, "keep_fraction": self.keep_fraction, "seed": self.seed}
+              "positions × scales × rotations searched; z = √PCE; weights sum to n: when both are searched, the "
+              "aligned positions (same size, zero shift) share half the budget and the crop/scale positions the "
+              "other half, and on a JPEG crop the offsets on its detected block grid share half of the search's; "
+              "attributed when p_FA ≤ pfa for one device, ambiguous when for several")
 
 
 # ----------------------------------------------------------------------------- results
@@ -372,7 +145,7 @@ class Candidate:
         Signed PCE at the best position (``z = sign·√|PCE|``).
     p_fa : float
         False-alarm probability of this fingerprint alone over its own search
-        (``1 − (1 − Q(z))^n_positions``); the decision uses the query's corrected value instead.
+        (``1 − (1 − Q(z)/w_grid)^n_positions``); the decision uses the query's corrected value instead.
     log10_p_fa : float
     ncc : float
         Normalised correlation at the peak.
@@ -392,8 +165,9 @@ class Candidate:
         The plain PCE at the same peak (one energy over all shifts, as ``forensics fingerprint match``
         reports), for comparison; the decision uses ``pce`` (block-phase energy, module notes).
     search_weight : float
-        The peak's share of the weighted search (module notes): above 1 on the query's detected JPEG
-        grid, below 1 off it, 1 without a grid.  Its tail is ``Q(z)/search_weight``.
+        The peak's weight in the query's weighted search (module notes): its hypothesis' share (aligned or
+        searched, 1 when only one kind is searched) times its JPEG-grid weight (above 1 on the query's
+        detected grid, below 1 off it, 1 without a grid).  Its tail is ``Q(z)/search_weight``.
     """
 
     device_id: str
@@ -450,7 +224,8 @@ class QueryIdentification:
     shape : (int, int)
         Image height and width as stored.
     decision : str
-        ``'attributed'`` or ``'unknown'``.
+        ``'attributed'`` (one device reaches the decision), ``'ambiguous'`` (several do: see ``matches``),
+        ``'unknown'`` (none does) or ``'excluded'`` (a content-free image, not scored: see ``note``).
     device_id : str or None
         The attributed device.
     best, runner_up : Candidate or None
@@ -473,6 +248,11 @@ class QueryIdentification:
         The scale grid used (number, range, grid error in pixels), None without a scale search.
     note : str or None
         Why an image could not be scored, if so.
+    matches : tuple of str
+        Every device that reaches the decision (one when attributed, several when ambiguous).
+    budget : dict or None
+        The split of the false-alarm budget between the aligned and the searched positions (module notes):
+        for each, its positions, share, weight and the PCE a peak of weight 1 within it needs.
     """
 
     source: str
@@ -491,6 +271,8 @@ class QueryIdentification:
     prescreen: dict[str, Any] | None = None
     scales: dict[str, Any] | None = None
     note: str | None = None
+    matches: tuple[str, ...] = ()
+    budget: dict[str, Any] | None = None
 
     @property
     def attributed(self) -> bool:
@@ -503,7 +285,7 @@ class QueryIdentification:
                 "top": [c.to_dict() for c in self.top], "p_fa": self.p_fa, "log10_p_fa": self.log10_p_fa,
                 "pce_threshold": self.pce_threshold, "n_tests": self.n_tests,
                 "n_fingerprints": self.n_fingerprints, "n_scored": self.n_scored, "prescreen": self.prescreen,
-                "scales": self.scales, "note": self.note}
+                "scales": self.scales, "note": self.note, "matches": list(self.matches), "budget": self.budget}
 
 
 @dataclass
@@ -521,6 +303,10 @@ class IdentificationResult:
     def n_attributed(self) -> int:
         return sum(1 for q in self.queries if q.attributed)
 
+    def n_decided(self, decision: str) -> int:
+        """Images with this decision ('attributed', 'ambiguous', 'unknown' or 'excluded')."""
+        return sum(1 for q in self.queries if q.decision == decision)
+
     def counts(self) -> dict[str, int]:
         """Images attributed to each device (devices with none omitted)."""
         out: dict[str, int] = {}
@@ -531,283 +317,11 @@ class IdentificationResult:
 
     def to_dict(self) -> dict[str, Any]:
         return {"set": self.name, "n_images": len(self.queries), "n_fingerprints": len(self.devices),
-                "n_attributed": self.n_attributed, "n_unknown": len(self.queries) - self.n_attributed,
+                "n_attributed": self.n_attributed, "n_ambiguous": self.n_decided("ambiguous"),
+                "n_unknown": self.n_decided("unknown"), "n_excluded": self.n_decided("excluded"),
                 "pfa": self.pfa, "correction": self.correction, "settings": self.settings,
                 "counts": self.counts(), "devices": self.devices, "queries": [q.to_dict() for q in self.queries]}
 
-
-@dataclass(frozen=True)
-class PrescreenMissRate:
-    """How often the pre-screen dropped the true device (:func:`prescreen_miss_rate`).
-
-    ``ranks`` is the true device's rank by sketch score (0 = first) for each aligned query whose device
-    is in the set; ``missed`` counts ranks ≥ ``keep``; ``ci`` is the 95 % Clopper–Pearson interval of
-    the miss rate; ``scores`` the true devices' sketch z-scores.
-    """
-
-    n: int
-    missed: int
-    rate: float
-    ci: tuple[float, float]
-    keep: int
-    dim: int
-    n_fingerprints: int
-    ranks: tuple[int, ...]
-    scores: tuple[float, ...]
-    n_skipped: int
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"n": self.n, "missed": self.missed, "rate": self.rate, "ci95": list(self.ci), "keep": self.keep,
-                "dim": self.dim, "n_fingerprints": self.n_fingerprints, "ranks": list(self.ranks),
-                "scores": list(self.scores), "n_skipped": self.n_skipped}
-
-
-# ----------------------------------------------------------------------------- small public helpers
-
-
-def pce_threshold(pfa: float, n_tests: float) -> float:
-    """The PCE a best candidate needs for ``1 − (1 − Q(√PCE))^n_tests ≤ pfa``.
-
-    For a position of a weighted search (``Candidate.search_weight`` ``w``) pass ``n_tests / w``.
-    """
-    if n_tests <= 0:
-        return math.inf
-    q = -math.expm1(math.log1p(-pfa) / n_tests)  # per-position tail probability
-    z = -float(special.ndtri(q))
-    return z * z
-
-
-def _resample_matrix(n_in: int, n_out: int, scale: float, out_origin: int = 0, in_origin: float = 0.0
-                     ) -> scipy.sparse.csr_matrix:
-    """Sparse (n_out × n_in) antialiased linear interpolation: output ``o`` ↔ input ``(o + out_origin + ½)/s − ½ − in_origin``.
-
-    The triangle kernel is stretched to ``1/s`` input pixels when shrinking (area-like averaging, as image
-    editors' "bilinear" resizers do) and is plain linear interpolation when enlarging.
-    """
-    support = max(1.0, 1.0 / scale)
-    centres = (np.arange(n_out) + out_origin + 0.5) / scale - 0.5 - in_origin
-    first = np.floor(centres - support).astype(np.int64) + 1
-    width = math.ceil(2 * support) + 1
-    idx = first[:, None] + np.arange(width)[None, :]
-    weights = np.maximum(0.0, 1.0 - np.abs(idx - centres[:, None]) / support)
-    weights[(idx < 0) | (idx >= n_in)] = 0.0
-    total = weights.sum(axis=1, keepdims=True)
-    weights = np.divide(weights, total, out=np.zeros_like(weights), where=total > 0)
-    rows = np.repeat(np.arange(n_out), width)
-    matrix = scipy.sparse.csr_matrix((weights.ravel().astype(np.float32), (rows, np.clip(idx, 0, n_in - 1).ravel())),
-                                     shape=(n_out, n_in))
-    matrix.eliminate_zeros()
-    return matrix
-
-
-def resample(array: np.ndarray, scale: float | tuple[float, float], shape: tuple[int, int] | None = None, *,
-             out_origin: tuple[int, int] = (0, 0), in_origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-    """Resample a 2-D array by ``scale`` (output pixels per input pixel) with an antialiased triangle kernel.
-
-    Parameters
-    ----------
-    array : ndarray, (H, W)
-    scale : float or (float, float)
-        Per axis if a pair.
-    shape : (int, int), optional
-        Output shape (default ``round(scale·(H, W))``).
-    out_origin, in_origin
-        Where the two grids start in a common frame (output pixels of the resampled frame, input pixels
-        of the original): a region cut from a frame at ``t`` maps to the resampled frame's pixel grid
-        exactly when ``in_origin = t`` and ``out_origin = ⌈t·s⌉``.
-
-    Returns
-    -------
-    ndarray, float32
-    """
-    a = np.asarray(array, np.float32)
-    if a.ndim != 2:
-        raise InputError(f"resample: need a 2-D array, got shape {a.shape}")
-    sy, sx = (float(scale), float(scale)) if np.ndim(scale) == 0 else (float(scale[0]), float(scale[1]))  # type: ignore[index]
-    if sy <= 0 or sx <= 0:
-        raise UsageError(f"resample: scale {scale} must be positive")
-    if shape is None:
-        shape = (max(1, round(a.shape[0] * sy)), max(1, round(a.shape[1] * sx)))
-    ay = _resample_matrix(a.shape[0], int(shape[0]), sy, out_origin[0], in_origin[0])
-    ax = _resample_matrix(a.shape[1], int(shape[1]), sx, out_origin[1], in_origin[1])
-    rows = ay @ a                       # (h_out, W)
-    out = (ax @ rows.T).T               # (h_out, w_out)
-    return np.ascontiguousarray(out, dtype=np.float32)
-
-
-# ----------------------------------------------------------------------------- references and geometry
-
-
-@dataclass(frozen=True)
-class _Reference:
-    """A candidate fingerprint with what every query needs of it."""
-
-    device_id: str
-    fingerprint: Fingerprint
-    region: Region
-    origin: tuple[int, int] | None      # top-left of the region in the frame; None for 'corners'
-    sketch: np.ndarray | None = None    # unit-norm sketch of K (pre-screen)
-
-    @property
-    def frame(self) -> tuple[int, int]:
-        return int(self.fingerprint.frame_shape[0]), int(self.fingerprint.frame_shape[1])
-
-
-@dataclass(frozen=True)
-class _Test:
-    """One (rotation, scale) of one fingerprint for one query, with its search geometry."""
-
-    rotation: int
-    scale: float
-    scale_yx: tuple[float, float]
-    aligned: bool
-    n_positions: int
-    k_shape: tuple[int, int] = (0, 0)          # the (resampled) fingerprint's shape
-    k_origin: tuple[int, int] = (0, 0)         # its top-left in the resampled frame
-    canvas: tuple[int, int] = (0, 0)
-    centre: tuple[int, int] = (0, 0)           # query origin in K's coordinates at zero shift
-    radius: tuple[int, int] = (0, 0)
-
-
-def _axis_range(q: int, k: int, f: int, t: int, crop_search: bool) -> tuple[int, int] | None:
-    """Offsets δ (query origin in the fingerprint region's coordinates) searched along one axis, or None.
-
-    The query (length ``q``) lies inside the region (length ``k``, at ``t`` in a frame of length ``f``)
-    or the region inside the query, and the query inside the frame.  Without a crop search only a whole
-    frame (up to the rounding of a resize) is accepted.
-    """
-    if q > f or (not crop_search and q < f - _SIZE_SLACK):
-        return None
-    lo = max(min(0, k - q), -t)
-    hi = min(max(0, k - q), f - q - t)
-    return (lo, hi) if lo <= hi else None
-
-
-def _crop_test(rot: int, scale: float, scale_yx: tuple[float, float], shape: tuple[int, int], ref: _Reference,
-               crop_search: bool) -> _Test | None:
-    """The geometry of searching a (rotated) query of ``shape`` in ``ref`` resampled by ``scale_yx``."""
-    fh, fw = ref.frame
-    assert ref.origin is not None
-    sy, sx = scale_yx
-    frame_s = (max(1, round(fh * sy)), max(1, round(fw * sx)))
-    kh, kw = ref.fingerprint.K.shape
-    if scale_yx == (1.0, 1.0):
-        k_shape, k_origin = (kh, kw), ref.origin
-    else:
-        k_origin = (math.ceil(ref.origin[0] * sy - 1e-9), math.ceil(ref.origin[1] * sx - 1e-9))
-        k_shape = (max(1, min(round(kh * sy), frame_s[0] - k_origin[0])),
-                   max(1, min(round(kw * sx), frame_s[1] - k_origin[1])))
-    ranges = [_axis_range(q, k, f, t, crop_search) for q, k, f, t in zip(shape, k_shape, frame_s, k_origin)]
-    if ranges[0] is None or ranges[1] is None:
-        return None
-    canvas = (max(shape[0], k_shape[0]), max(shape[1], k_shape[1]))
-    if min(canvas) < 22:  # the PCE's 11×11 exclusion window needs room
-        return None
-    centre, radius, count = [], [], 1
-    for (lo, hi), size in zip(ranges, canvas):
-        c = (lo + hi) // 2
-        r = max(hi - c, c - lo)
-        centre.append(c)
-        radius.append(r)
-        count *= min(2 * r + 1, size)  # as forensics.prnu.match._shift_indices searches
-    return _Test(rot, scale, scale_yx, False, count, k_shape, k_origin, canvas, (centre[0], centre[1]),
-                 (radius[0], radius[1]))
-
-
-def _rotated(shape: tuple[int, int], rot: int) -> tuple[int, int]:
-    return (shape[1], shape[0]) if rot % 2 else (shape[0], shape[1])
-
-
-def _rotations(spec: Any, shape: tuple[int, int], frame: tuple[int, int], max_scale: float) -> tuple[int, ...]:
-    """Quarter turns to try for an image of ``shape`` against a frame (module notes)."""
-    limit = (round(frame[0] * max_scale) + _SIZE_SLACK, round(frame[1] * max_scale) + _SIZE_SLACK)
-
-    def fits(rot: int) -> bool:
-        h, w = _rotated(shape, rot)
-        return h <= limit[0] and w <= limit[1]
-
-    if isinstance(spec, str):
-        if spec == "none":
-            return (0,) if fits(0) else ()
-        if spec == "auto":
-            if fits(0):
-                return (0,)
-            return (1, 3) if fits(1) else ()
-        if spec == "all":
-            return tuple(r for r in range(4) if fits(r))
-        raise UsageError(f"rotations={spec!r}: choose one of {', '.join(_ROTATION_MODES)}, or give quarter turns")
-    turns = (int(spec),) if np.ndim(spec) == 0 else tuple(int(r) for r in spec)
-    return tuple(sorted({r % 4 for r in turns if fits(r % 4)}))
-
-
-def _scales_for(search: ScaleSearch | None, shape: tuple[int, int], frame: tuple[int, int]
-                ) -> list[tuple[float, tuple[float, float]]]:
-    """(nominal scale, per-axis scales) to try for a (rotated) query of ``shape``: the grid, and the scale its
-    size implies if it is a whole frame resized with its aspect ratio."""
-    if search is None:
-        return [(1.0, (1.0, 1.0))]
-    # the query must fit in the resampled frame (up to the rounding of a resize)
-    floor = max((shape[0] - _SIZE_SLACK) / frame[0], (shape[1] - _SIZE_SLACK) / frame[1])
-    out = [(s, (s, s)) for s in search.grid(max(shape), floor)]
-    if search.from_size:
-        h, w = shape
-        sy, sx = h / frame[0], w / frame[1]
-        lo, hi = search.bounds()
-        # both axes agree up to the rounding of the size; a scale already on the grid is not tried twice
-        if abs(round(frame[0] * sx) - h) <= 1 and lo <= sx <= hi and all(abs(s - sx) > 1e-9 for s, _ in out):
-            out.append((sx, (sy, sx)))
-    return out
-
-
-def _scale_info(search: ScaleSearch | None, shape: tuple[int, int]) -> dict[str, Any] | None:
-    """The scale grid of a query, as reported."""
-    if search is None:
-        return None
-    side = max(shape)
-    grid = search.grid(side, check=False)
-    error = search.grid_error(side)
-    return {"n_grid": len(grid), "lo": min(grid), "hi": max(grid),
-            "grid_error_px": None if math.isnan(error) else error, "from_size": search.from_size,
-            "note": "scales at which the image does not fit in a fingerprint's frame are not searched"}
-
-
-def _plan(shape: tuple[int, int], ref: _Reference, settings: _Settings) -> list[_Test]:
-    """Every (rotation, scale) test of a query of ``shape`` against ``ref``; empty if incompatible."""
-    fp_frame = ref.frame
-    search = settings.scales
-    max_scale = search.bounds()[1] if search is not None else 1.0
-    tests: list[_Test] = []
-    for rot in _rotations(settings.rotations, shape, fp_frame, max_scale):
-        rshape = _rotated(shape, rot)
-        for scale, scale_yx in _scales_for(search, rshape, fp_frame):
-            if scale_yx == (1.0, 1.0) and rshape == fp_frame:
-                tests.append(_Test(rot, 1.0, (1.0, 1.0), True, 1))
-            elif ref.origin is not None and (settings.crop_search or scale_yx != (1.0, 1.0)):
-                test = _crop_test(rot, scale, scale_yx, rshape, ref, settings.crop_search)
-                if test is not None:
-                    tests.append(test)
-    return tests
-
-
-# ----------------------------------------------------------------------------- the pre-screen's sketch
-
-
-@lru_cache(maxsize=8)
-def _sketch_operator(n: int, dim: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Bucket and sign of every pixel (a ±1 matrix with one non-zero per column), fixed by the seed."""
-    rng = np.random.default_rng([seed, n, dim])
-    buckets = rng.integers(0, dim, n, dtype=np.int64)
-    signs = (rng.integers(0, 2, n, dtype=np.int8) * 2 - 1).astype(np.float64)
-    return buckets, signs
-
-
-def sketch(array: np.ndarray, dim: int, seed: int = SKETCH_SEED) -> np.ndarray:
-    """Unit-norm CountSketch of the zero-mean ``array`` (length ``dim``)."""
-    x = np.asarray(array, np.float64).ravel()
-    buckets, signs = _sketch_operator(x.size, int(dim), int(seed))
-    y = np.bincount(buckets, weights=(x - x.mean()) * signs, minlength=int(dim))
-    norm = float(np.linalg.norm(y))
-    return y / norm if norm > 0 else y
 
 
 # ----------------------------------------------------------------------------- work items
@@ -879,155 +393,6 @@ class _QueryImage:
         return self._sketches[key]
 
 
-def _log_tail(z: float, weight: float) -> float:
-    """``log(Q(z)/weight)``: a peak's tail in a weighted search (smaller is stronger)."""
-    return float(special.log_ndtr(-z)) - math.log(weight)
-
-
-def _z(pce_value: float) -> float:
-    return math.copysign(math.sqrt(abs(pce_value)), pce_value)
-
-
-@dataclass(frozen=True)
-class _Peak:
-    """The block-phase PCE of one correlation surface (see :func:`_block_pce`)."""
-
-    pce: float
-    pce_global: float
-    shift: tuple[int, int]
-    sign: int
-    ncc: float
-    weight: float = 1.0          # the peak's share of the weighted search (see _grid_phase)
-
-
-def _surface(spectrum: _Spectrum, reference: np.ndarray) -> tuple[np.ndarray, float]:
-    """Circular cross-correlation of the spectrum's array with ``reference`` (as :func:`forensics.prnu.match.pce`)."""
-    b0 = _centred(reference)
-    norm_b = math.sqrt(_sum_sq(b0))
-    spec = scipy.fft.rfft2(b0, workers=spectrum.workers)
-    del b0
-    np.conjugate(spec, out=spec)
-    spec *= spectrum.spec
-    return scipy.fft.irfft2(spec, s=spectrum.shape, workers=spectrum.workers), norm_b
-
-
-def _phases(n: int) -> np.ndarray:
-    """Block phase ``shift mod BLOCK`` of every circular shift index, shifts taken in ``(−n/2, n/2]``."""
-    idx = np.arange(n)
-    return np.where(idx > n // 2, idx - n, idx) % BLOCK
-
-
-def _block_pce(corr: np.ndarray, rows: np.ndarray, cols: np.ndarray, exclusion: int, norms: float) -> _Peak:
-    """Peak of ``corr`` over ``rows × cols`` normalised by the energy of the shifts in its block phase.
-
-    JPEG's 8×8 blocks make the null variance of the correlation periodic in the shift: on the Dresden
-    JPEGs, the shifts that align the query's block grid with the fingerprint's have 1.6–1.85 times the
-    mean energy (others 0.8), and the plain PCE, with one energy for all shifts, then exceeds its χ²₁
-    tail there (non-matching Dresden pairs: PCE 21 at zero shift, many crop searches above the Šidák
-    bound).  Each shift's ``z`` is therefore the correlation over the root-mean-square of the shifts with
-    the same phase ``(dy mod 8, dx mod 8)`` (the ``exclusion`` window around the peak left out, as in the
-    PCE), shrunk towards the all-shift energy by :data:`PHASE_PRIOR` shifts so that a small canvas's noisy
-    phase energies do not themselves inflate ``z``.  On images without blocks all phases agree and the
-    statistic is the PCE.
-    """
-    h, w = corr.shape
-    half = exclusion // 2
-    if h < 2 * exclusion or w < 2 * exclusion:
-        raise InputError(f"a correlation of shape {corr.shape} is too small for PCE with a {exclusion}×{exclusion} "
-                         "exclusion window")
-    ry, rx = _phases(h), _phases(w)
-    one_y = (ry[None, :] == np.arange(BLOCK)[:, None]).astype(np.float64)   # (BLOCK, h)
-    one_x = (rx[:, None] == np.arange(BLOCK)[None, :]).astype(np.float64)   # (w, BLOCK)
-    sq = np.square(corr, dtype=np.float64)
-    sums = one_y @ sq @ one_x
-    del sq
-    counts = np.outer(one_y.sum(axis=1), one_x.sum(axis=0))
-
-    def energies(s: np.ndarray, c: np.ndarray) -> np.ndarray:
-        overall = s.sum() / c.sum()
-        return (s + PHASE_PRIOR * overall) / (c + PHASE_PRIOR)
-
-    energy = energies(sums, counts)
-    sub = corr[np.ix_(rows, cols)] / np.sqrt(energy[np.ix_(ry[rows], rx[cols])])
-    (iy, ix), weight = _weighted_argmax(sub, ry[rows], rx[cols], _grid_phase(sums, counts))
-    py, px = int(rows[iy]), int(cols[ix])
-    # leave the window around the peak out of the energies
-    wr = np.unique((py + np.arange(-half, half + 1)) % h)
-    wc = np.unique((px + np.arange(-half, half + 1)) % w)
-    window = np.square(corr[np.ix_(wr, wc)], dtype=np.float64)
-    win_y = (ry[wr][None, :] == np.arange(BLOCK)[:, None]).astype(np.float64)
-    win_x = (rx[wc][:, None] == np.arange(BLOCK)[None, :]).astype(np.float64)
-    sums -= win_y @ window @ win_x
-    counts -= np.outer(win_y.sum(axis=1), win_x.sum(axis=0))
-    np.maximum(sums, 0.0, out=sums)
-    energy = energies(sums, counts)
-    peak = float(corr[py, px])
-    dy = py - h if py > h // 2 else py
-    dx = px - w if px > w // 2 else px
-    e_phase = float(energy[ry[py], rx[px]])
-    e_all = float(sums.sum() / counts.sum())
-    if e_phase <= 0.0 or e_all <= 0.0 or norms == 0.0:
-        return _Peak(0.0, 0.0, (dy, dx), 0, 0.0)
-    sign = 1 if peak > 0 else (-1 if peak < 0 else 0)
-    return _Peak(sign * peak * peak / e_phase, sign * peak * peak / e_all, (int(dy), int(dx)), sign,
-                 float(np.clip(peak / norms, -1.0, 1.0)), weight)
-
-
-def _grid_phase(sums: np.ndarray, counts: np.ndarray) -> tuple[int, int] | None:
-    """The block phase of the shifts that align the query's JPEG grid with the fingerprint's, if any.
-
-    Under the null the correlation's variance at shift ``s`` is ``Σ_p v_q(p)·v_K(p + s)`` over the
-    block phases ``p`` of the two arrays' variances; when both are periodic alike (JPEG: noisier
-    block boundaries) it is largest at the aligning phase (rearrangement inequality).  A phase counts
-    as the grid when its energy exceeds the mean by :data:`GRID_MIN_EXCESS` and by :data:`GRID_SIGMAS`
-    standard errors of an energy estimated from that many shifts (``√(2/m)`` for a white surface), so
-    images without blocks (PNG, simulations, resampled fingerprints) have none.  The choice depends
-    on the energies only, not on the normalised peaks, so it leaves the null of ``z`` unchanged.
-    """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean_phase = sums / counts
-    overall = float(sums.sum() / counts.sum())
-    if not overall > 0.0:
-        return None
-    a = np.unravel_index(int(np.nanargmax(mean_phase)), mean_phase.shape)
-    excess = float(mean_phase[a]) / overall - 1.0
-    if excess < max(GRID_MIN_EXCESS, GRID_SIGMAS * math.sqrt(2.0 / float(counts[a]))):
-        return None
-    return int(a[0]), int(a[1])
-
-
-def _weighted_argmax(z: np.ndarray, phase_rows: np.ndarray, phase_cols: np.ndarray,
-                     grid: tuple[int, int] | None) -> tuple[tuple[int, int], float]:
-    """The position of ``z`` with the smallest weighted tail ``Q(z)/w``, and its weight ``w``.
-
-    Weighted Bonferroni over one test's ``n`` positions: the grid-aligned ones (``n_A``, the phase
-    :func:`_grid_phase` found) share :data:`GRID_SHARE` of the false-alarm budget (``w_A = share·n/n_A``),
-    the others the rest (``w_R = (1 − share)·n/n_R``); the weights sum to ``n``, so the Šidák count is
-    unchanged and the bound holds whichever class the true offset is in.  A crop cut from a decoded
-    JPEG sits on the grid (threshold of ``n/w_A`` positions: PCE 33 instead of 40 for 1024² crops of a
-    3008×2000 frame at p_FA 10⁻³); one re-encoded after cropping has its own grid and is searched at
-    ``n/w_R`` (PCE 41.5).  Without a grid every weight is 1 and this is the plain argmax.
-    """
-    flat = int(np.argmax(z))
-    best = np.unravel_index(flat, z.shape)
-    if grid is None:
-        return (int(best[0]), int(best[1])), 1.0
-    on_rows, on_cols = phase_rows == grid[0], phase_cols == grid[1]
-    n = z.size
-    n_a = int(on_rows.sum()) * int(on_cols.sum())
-    if n_a == 0 or n_a == n:
-        return (int(best[0]), int(best[1])), 1.0
-    w_a, w_r = GRID_SHARE * n / n_a, (1.0 - GRID_SHARE) * n / (n - n_a)
-    ra, ca = np.flatnonzero(on_rows), np.flatnonzero(on_cols)
-    za = z[np.ix_(ra, ca)]
-    ia = np.unravel_index(int(np.argmax(za)), za.shape)
-    pos_a = (int(ra[ia[0]]), int(ca[ia[1]]))
-    masked = z.copy()
-    masked[np.ix_(ra, ca)] = -np.inf
-    ib = np.unravel_index(int(np.argmax(masked)), masked.shape)
-    pos_r = (int(ib[0]), int(ib[1]))
-    return (pos_a, w_a) if _log_tail(z[pos_a], w_a) <= _log_tail(z[pos_r], w_r) else (pos_r, w_r)
-
 
 def _run_test(query: _QueryImage, ref: _Reference, test: _Test, exclusion: int) -> tuple[_Peak, tuple[int, int]]:
     """Block-phase PCE of one test, and the query's top-left in the (resampled) frame at the peak."""
@@ -1035,7 +400,7 @@ def _run_test(query: _QueryImage, ref: _Reference, test: _Test, exclusion: int) 
     if test.aligned:
         q, spectrum = query.prepared.get(ref.region.spec, test.rotation, True)
         assert spectrum is not None
-        corr, norm_b = _surface(spectrum, q.intensity * k)
+        corr, norm_b = surface(spectrum, q.intensity * k)
         zero = np.zeros(1, np.int64)
         return _block_pce(corr, zero, zero, exclusion, spectrum.norm * norm_b), (0, 0)
     if test.scale_yx != (1.0, 1.0):
@@ -1044,7 +409,7 @@ def _run_test(query: _QueryImage, ref: _Reference, test: _Test, exclusion: int) 
     reference = np.zeros(test.canvas, np.float32)
     reference[: test.k_shape[0], : test.k_shape[1]] = _centred(k)
     spectrum = query.canvas_spectrum(test)
-    corr, norm_b = _surface(spectrum, reference)
+    corr, norm_b = surface(spectrum, reference)
     del reference
     rows = _shift_indices(test.radius[0], test.canvas[0])
     cols = _shift_indices(test.radius[1], test.canvas[1])
@@ -1056,36 +421,54 @@ def _run_test(query: _QueryImage, ref: _Reference, test: _Test, exclusion: int) 
 
 
 def _score_reference(query: _QueryImage, ref: _Reference, tests: list[_Test], exclusion: int,
-                     sketch_score: float | None) -> Candidate:
-    """The best of a fingerprint's tests, with its own search-corrected p_FA."""
-    best: tuple[float, _Peak, _Test, tuple[int, int]] | None = None
+                     sketch_score: float | None, shares: _Budget) -> Candidate:
+    """The best of a fingerprint's tests (smallest tail weighted by its hypothesis' share and its grid weight),
+    with its own search-corrected p_FA."""
+    best: tuple[float, _Peak, _Test, tuple[int, int], float] | None = None
     for test in tests:
         peak, offset = _run_test(query, ref, test, exclusion)
-        tail = _log_tail(_z(peak.pce), peak.weight)
+        weight = peak.weight * shares.weight(test.aligned)
+        tail = _log_tail(_z(peak.pce), weight)
         if best is None or tail < best[0]:
-            best = (tail, peak, test, offset)
+            best = (tail, peak, test, offset, weight)
     assert best is not None
-    _, peak, test, offset = best
+    _, peak, test, offset, weight = best
     n = sum(t.n_positions for t in tests)
     p_fa, log10 = _false_alarm(_z(peak.pce), n, peak.weight) if peak.sign != 0 else (1.0, 0.0)
     method = "aligned" if test.aligned else ("crop" if test.scale_yx == (1.0, 1.0) else "scale")
     return Candidate(ref.device_id, float(peak.pce), p_fa, log10, peak.ncc, test.rotation, float(test.scale),
                      (int(offset[0]), int(offset[1])), int(n), method, sketch_score, float(peak.pce_global),
-                     float(peak.weight))
+                     float(weight))
 
 
-def _screen(query: _QueryImage, settings: _Settings, plans: list[list[_Test]]) -> dict[int, float]:
-    """Sketch z-scores of the fingerprints whose every test is aligned (max over their rotations)."""
-    pre = settings.prescreen
-    assert pre is not None
-    scores: dict[int, float] = {}
-    for j, (ref, tests) in enumerate(zip(settings.refs, plans)):
-        if not tests or ref.sketch is None or not all(t.aligned for t in tests):
-            continue
-        dim = ref.sketch.size
-        values = [float(query.sketch(ref.region.spec, t.rotation, dim, pre.seed) @ ref.sketch) for t in tests]
-        scores[j] = math.sqrt(dim) * max(values)
-    return scores
+@dataclass(frozen=True)
+class _Budget:
+    """How a query's false-alarm budget is split between aligned and searched positions (module notes)."""
+
+    n_aligned: int
+    n_searched: int
+    share: float = ALIGNED_SHARE
+
+    @property
+    def n(self) -> int:
+        return self.n_aligned + self.n_searched
+
+    def weight(self, aligned: bool) -> float:
+        """``w_al = share·n/n_al`` or ``w_se = (1 − share)·n/n_se``; 1 when only one kind is searched."""
+        if self.n_aligned == 0 or self.n_searched == 0:
+            return 1.0
+        return self.share * self.n / self.n_aligned if aligned else (1.0 - self.share) * self.n / self.n_searched
+
+    def to_dict(self, pfa: float) -> dict[str, Any]:
+        both = self.n_aligned > 0 and self.n_searched > 0
+        out = {}
+        for key, aligned, count in (("aligned", True, self.n_aligned), ("searched", False, self.n_searched)):
+            share = (self.share if aligned else 1.0 - self.share) if both else float(count > 0)
+            w = self.weight(aligned)
+            out[key] = {"n_tests": count, "share": share, "weight": w if count else None,
+                        "pce_threshold": pce_threshold(pfa, self.n / w) if count else None}
+        return out
+
 
 
 def _load_query(payload: Any, index: int) -> tuple[np.ndarray, str]:
@@ -1103,11 +486,19 @@ def _identify_item(settings: _Settings, item: tuple[int, Any]) -> QueryIdentific
     """Work item: one query against every compatible fingerprint."""
     index, payload = item
     image, source = _load_query(payload, index)
+    shape = (int(image.shape[0]), int(image.shape[1])) if image.ndim in (2, 3) else (0, 0)
+    problem = region_content_problem(image, "full", **settings.query_options) if image.ndim in (2, 3) else None
+    if problem is not None:  # nothing to score: any number would be taken at face value
+        return QueryIdentification(source, shape, "excluded", None, None, None, (), 1.0, 0.0, math.inf, 0, 0, 0,
+                                   note=f"content-free: {problem}")
     query = _QueryImage(image, source, settings)
     del image
-    plans = [_plan(query.shape, ref, settings) for ref in settings.refs]
+    plans = [_plan(query.shape, ref, settings.rotations, settings.scales, settings.crop_search)
+             for ref in settings.refs]
     compatible = [j for j, tests in enumerate(plans) if tests]
-    n_tests = sum(t.n_positions for tests in plans for t in tests)
+    n_aligned = sum(t.n_positions for tests in plans for t in tests if t.aligned)
+    shares = _Budget(n_aligned, sum(t.n_positions for tests in plans for t in tests) - n_aligned)
+    n_tests = shares.n
     scale_info = _scale_info(settings.scales, query.shape)
     if not compatible:
         note = (f"no fingerprint is compatible with this {query.shape[1]}×{query.shape[0]} image (size, orientation"
@@ -1115,37 +506,24 @@ def _identify_item(settings: _Settings, item: tuple[int, Any]) -> QueryIdentific
                 + ")")
         return QueryIdentification(source, query.shape, "unknown", None, None, None, (), 1.0, 0.0, math.inf, 0, 0, 0,
                                    None, scale_info, note)
-    chosen, sketch_scores, pre_info = _prescreen(query, settings, plans, compatible)
-    candidates = [_score_reference(query, settings.refs[j], plans[j], settings.exclusion, sketch_scores.get(j))
-                  for j in chosen]
+    chosen, sketch_scores, pre_info = _prescreen(query, settings.refs, settings.prescreen, plans, compatible)
+    candidates = [_score_reference(query, settings.refs[j], plans[j], settings.exclusion, sketch_scores.get(j),
+                                   shares) for j in chosen]
     candidates.sort(key=lambda c: (c.log_tail, c.device_id))
     best = candidates[0]
     p_fa, log10 = _false_alarm(best.z, n_tests, best.search_weight) if best.pce != 0 else (1.0, 0.0)
-    attributed = best.z > 0 and p_fa <= settings.pfa
+    # every device that reaches the decision on its own: one is an attribution, several an ambiguity
+    matches = tuple(c.device_id for c in candidates
+                    if c.z > 0 and _false_alarm(c.z, n_tests, c.search_weight)[0] <= settings.pfa)
+    decision = "unknown" if not matches else ("attributed" if len(matches) == 1 else "ambiguous")
+    note = (f"{len(matches)} devices reach the decision ({', '.join(matches[:4])}): the image matches each of them "
+            "(one sensor in the database twice, or a false alarm), so none is named") if len(matches) > 1 else None
     return QueryIdentification(
-        source, query.shape, "attributed" if attributed else "unknown", best.device_id if attributed else None,
+        source, query.shape, decision, best.device_id if decision == "attributed" else None,
         best, candidates[1] if len(candidates) > 1 else None, tuple(candidates[: settings.top_k]), p_fa, log10,
         pce_threshold(settings.pfa, n_tests / best.search_weight), int(n_tests), len(compatible), len(candidates),
-        pre_info, scale_info)
+        pre_info, scale_info, note, matches, shares.to_dict(settings.pfa))
 
-
-def _prescreen(query: _QueryImage, settings: _Settings, plans: list[list[_Test]], compatible: list[int]
-               ) -> tuple[list[int], dict[int, float], dict[str, Any] | None]:
-    """The fingerprints that get the full PCE, their sketch scores, and the pre-screen's figures."""
-    pre = settings.prescreen
-    if pre is None:
-        return compatible, {}, None
-    keep = pre.keep_for(len(settings.refs))
-    scores = _screen(query, settings, plans)
-    if len(scores) <= keep:
-        return compatible, {}, {"ran": False, "reason": f"{len(scores)} aligned candidates, keep {keep}"}
-    ranked = sorted(scores, key=lambda j: (-scores[j], j))
-    kept = set(ranked[:keep])
-    chosen = [j for j in compatible if j in kept or j not in scores]
-    dims = sorted({settings.refs[j].sketch.size for j in scores})  # type: ignore[union-attr]
-    info = {"ran": True, "screened": len(scores), "kept": len(kept), "dropped": len(scores) - len(kept),
-            "dim": dims[0] if len(dims) == 1 else dims, "lowest_kept_score": scores[ranked[keep - 1]]}
-    return chosen, scores, info
 
 
 # ----------------------------------------------------------------------------- the drivers
@@ -1174,6 +552,7 @@ def _references(fingerprints: Any) -> tuple[tuple[_Reference, ...], list[dict[st
         seen.add(device_id)
         if not isinstance(fp, Fingerprint):
             raise UsageError(f"{device_id}: {type(fp).__name__} is not a Fingerprint")
+        check_fingerprint(fp, f"the fingerprint of device {device_id!r}")
         region = parse_region(fp.region)
         origin = None
         if region.kind != "corners":
@@ -1185,13 +564,6 @@ def _references(fingerprints: Any) -> tuple[tuple[_Reference, ...], list[dict[st
         devices.append(info)
     return tuple(refs), devices
 
-
-def _with_sketches(refs: tuple[_Reference, ...], pre: Prescreen | None) -> tuple[_Reference, ...]:
-    """The references with their fingerprints' sketches (computed once, here, in the driver)."""
-    if pre is None:
-        return refs
-    return tuple(replace(r, sketch=sketch(r.fingerprint.K, pre.dim(r.fingerprint.K.size), pre.seed).astype(np.float32))
-                 for r in refs)
 
 
 def _scale_search(scales: Any) -> ScaleSearch | None:
@@ -1205,17 +577,6 @@ def _scale_search(scales: Any) -> ScaleSearch | None:
         return ScaleSearch(values=(float(scales),))
     return ScaleSearch(values=tuple(float(s) for s in scales))
 
-
-def _prescreen_config(prescreen: Any, n: int) -> Prescreen | None:
-    if prescreen is None or prescreen is False or prescreen == "off":
-        return None
-    if isinstance(prescreen, Prescreen):
-        return prescreen
-    if prescreen is True or prescreen == "on":
-        return Prescreen()
-    if prescreen == "auto":
-        return Prescreen() if n > PRESCREEN_AUTO_MIN else None
-    raise UsageError(f"prescreen={prescreen!r}: use None/'off', 'auto', 'on' or a Prescreen")
 
 
 def _query_items(queries: Any, executor: Executor) -> tuple[list[tuple[int, Any]], str | None]:
@@ -1232,7 +593,13 @@ def _query_items(queries: Any, executor: Executor) -> tuple[list[tuple[int, Any]
     return items, name
 
 
-def _check_options(top_k: int, pfa: float, rotations: Any) -> None:
+def _check_options(top_k: int, pfa: float, rotations: Any, sigma: float) -> None:
+    try:
+        value = float(sigma)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise UsageError(f"sigma={sigma!r}: the query residual's noise level must be a positive number (2 is usual)")
     if top_k < 1:
         raise UsageError(f"top_k={top_k}: list at least one candidate")
     if not (0.0 < pfa < 1.0):
@@ -1293,8 +660,16 @@ def identify(
     Returns
     -------
     IdentificationResult
+
+    Raises
+    ------
+    UsageError
+        Options out of range (``sigma`` not a positive number, ``pfa`` outside (0, 1), …).
+    InputError
+        A fingerprint holds no usable pattern (NaN, constant), a query cannot be read, or every query is
+        content-free.
     """
-    _check_options(top_k, pfa, rotations)
+    _check_options(top_k, pfa, rotations, sigma)
     search = _scale_search(scales)
     ex = resolve(executor)
     refs, devices = _references(fingerprints)
@@ -1309,6 +684,9 @@ def identify(
     else:
         items, name = _query_items(queries, ex)
         results = list(ex.map(_identify_item, items, shared=settings, progress=progress, desc="identifying"))
+    if results and all(q.decision == "excluded" for q in results):
+        raise InputError(f"{name or 'the queries'}: every one of its {len(results)} image(s) is content-free, so none "
+                         f"can be identified (first, {results[0].source}: {results[0].note}); give exposed images")
     return IdentificationResult(results, devices, float(pfa), _settings_dict(settings, prescreen), CORRECTION, name)
 
 
@@ -1330,8 +708,10 @@ def _rank_item(settings: _Settings, item: tuple[int, Any]) -> tuple[dict[str, fl
     index, payload = item
     image, source = _load_query(payload, index)
     query = _QueryImage(image, source, settings)
-    plans = [_plan(query.shape, ref, settings) for ref in settings.refs]
-    scores = _screen(query, settings, plans)
+    plans = [_plan(query.shape, ref, settings.rotations, settings.scales, settings.crop_search)
+             for ref in settings.refs]
+    assert settings.prescreen is not None
+    scores = _screen(query, settings.refs, plans, settings.prescreen.seed)
     return {settings.refs[j].device_id: s for j, s in scores.items()}, bool(scores)
 
 

@@ -31,12 +31,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.fft
-from scipy import special
 
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.parallel import Executor, resolve
-from forensics.prnu.fingerprint import Fingerprint, Region, parse_region, region_residual_and_intensity
+from forensics.prnu.correlation import _centred, _false_alarm, _shift_indices, _Spectrum, _sum_sq, surface
+from forensics.prnu.fingerprint import (
+    Fingerprint,
+    Region,
+    check_fingerprint,
+    parse_region,
+    region_content_problem,
+    region_residual_and_intensity,
+)
 from forensics._shared.progress import Progress, no_progress
 from forensics.prnu.residual import default_workers
 
@@ -113,7 +119,9 @@ class MatchScore:
     """Score of one query against one fingerprint.
 
     ``value`` is the PCE (signed) or the NCC, per ``metric``; ``rotation`` the number
-    of 90° counter-clockwise turns (``np.rot90``) applied to the query image.
+    of 90° counter-clockwise turns (``np.rot90``) applied to the query image.  A content-free
+    query (constant, black or saturated over the fingerprint's region, :mod:`forensics.io.content`)
+    is not scored: ``value`` and ``ncc`` are NaN and ``excluded`` says why.
     """
 
     metric: str
@@ -121,6 +129,7 @@ class MatchScore:
     rotation: int
     ncc: float
     pce: PceResult | None = None
+    excluded: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -130,6 +139,7 @@ class MatchScore:
             "rotation": self.rotation,
             "ncc": self.ncc,
             "pce": self.pce.to_dict() if self.pce is not None else None,
+            "excluded": self.excluded,
         }
 
 
@@ -176,23 +186,6 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.clip(num / den, -1.0, 1.0))
 
 
-def _sum_sq(a: np.ndarray) -> float:
-    return float(np.square(a).sum(dtype=np.float64))
-
-
-def _centred(a: np.ndarray) -> np.ndarray:
-    """float32 copy of ``a`` minus its mean (the mean taken in float64)."""
-    out = np.array(a, dtype=np.float32, copy=True)
-    out -= np.float32(out.mean(dtype=np.float64))
-    return out
-
-
-def _shift_indices(r: int | None, n: int) -> np.ndarray:
-    if r is None or 2 * r + 1 >= n:
-        return np.arange(n)
-    return np.arange(-r, r + 1) % n
-
-
 def _parse_shift_range(shift_range: int | tuple[int, int] | None) -> tuple[int | None, int | None]:
     if shift_range is None:
         return None, None
@@ -206,17 +199,6 @@ def _parse_shift_range(shift_range: int | tuple[int, int] | None) -> tuple[int |
     return ry, rx
 
 
-class _Spectrum:
-    """Real FFT of a zero-mean array, kept to correlate it with many references."""
-
-    def __init__(self, a: np.ndarray, workers: int) -> None:
-        a0 = _centred(a)
-        self.shape = a0.shape
-        self.norm = math.sqrt(_sum_sq(a0))
-        self.spec = scipy.fft.rfft2(a0, workers=workers)
-        self.workers = workers
-
-
 def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion: int) -> tuple[PceResult, float]:
     """PCE of the spectrum's array against ``reference``, and the NCC at zero shift."""
     h, w = sa.shape
@@ -225,14 +207,7 @@ def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion:
     if h < 2 * exclusion or w < 2 * exclusion:
         raise InputError(f"arrays of shape {sa.shape} are too small for PCE with a {exclusion}×{exclusion} exclusion window")
     ry, rx = _parse_shift_range(shift_range)
-    b0 = _centred(reference)
-    norm_b = math.sqrt(_sum_sq(b0))
-    spec = scipy.fft.rfft2(b0, workers=sa.workers)
-    del b0
-    np.conjugate(spec, out=spec)
-    spec *= sa.spec
-    corr = scipy.fft.irfft2(spec, s=(h, w), workers=sa.workers)
-    del spec
+    corr, norm_b = surface(sa, reference)
     rows = _shift_indices(ry, h)
     cols = _shift_indices(rx, w)
     n_shifts = rows.size * cols.size
@@ -269,24 +244,6 @@ def _pce_with(sa: _Spectrum, reference: np.ndarray, shift_range: Any, exclusion:
         n_shifts=int(n_shifts),
     )
     return result, ncc0
-
-
-def _false_alarm(z: float, n: float, weight: float = 1.0) -> tuple[float, float]:
-    """``1 − (1 − Q(z)/weight)^n`` and its log10, stable for tiny and for large tails.
-
-    ``weight`` is the position's share of a weighted (Bonferroni–Šidák) search: ``n`` positions whose
-    weights sum to ``n`` (one each when unweighted, see :mod:`forensics.prnu.identify`).
-    """
-    log_p = min(0.0, float(special.log_ndtr(-z)) - math.log(weight))  # log(Q(z)/weight)
-    p = math.exp(log_p)
-    if p > 1e-12:
-        log_keep = n * math.log1p(-p) if p < 1.0 else -math.inf
-        p_fa = -math.expm1(log_keep)
-        log10 = math.log10(p_fa) if p_fa > 0 else log_p / math.log(10) + math.log10(n)
-    else:  # (1 − p)^n = 1 − n·p + O((n·p)²)
-        log10 = (log_p + math.log(n)) / math.log(10)
-        p_fa = min(1.0, 10.0**log10) if log10 > -320 else 0.0
-    return float(min(1.0, p_fa)), float(min(0.0, log10))
 
 
 def pce(
@@ -489,10 +446,15 @@ def score_query(
         Passed to :func:`prepare_query` (white_level, black_level, ...).
     """
     _check_metric(metric)
+    check_fingerprint(fingerprint)
     workers = default_workers() if workers is None else workers
     region = parse_region(fingerprint.region)
     best: MatchScore | None = None
     rots = _rotations_for(rotations, np.shape(image), fingerprint)
+    problem = _content_problem(np.asarray(image), region.spec, rots[0], query_options)
+    if problem is not None:
+        raise InputError(f"the query image is content-free over the fingerprint's region ({problem}); it holds no "
+                         "pattern to match")
     for rot in rots:
         q = prepare_query(image, region, sigma=sigma, rotation=rot, workers=workers, **query_options)
         score = _score(fingerprint, q.residual, q.intensity, metric, shift_range, exclusion, rot, workers)
@@ -514,6 +476,15 @@ def _account_rotations(score: MatchScore, n_rot: int) -> MatchScore:
     return MatchScore(score.metric, score.value, score.rotation, score.ncc, pce_result)
 
 
+def _content_problem(image: np.ndarray, region: str, rotation: int, options: dict[str, Any]) -> str | None:
+    """Why ``image`` turned by ``rotation`` holds no pattern over ``region``, or None (also when the region does not
+    fit: the scoring then says so, with the shapes)."""
+    try:
+        return region_content_problem(np.rot90(image, rotation % 4, axes=(0, 1)), region, **options)
+    except InputError:
+        return None
+
+
 class _PreparedImage:
     """A query image whose region residuals and spectra are computed once, on demand."""
 
@@ -524,6 +495,15 @@ class _PreparedImage:
         self.workers = workers
         self.options = options
         self._cache: dict[tuple[str, int], tuple[Query, _Spectrum | None]] = {}
+        self._content: dict[tuple[str, int], str | None] = {}
+
+    def content_problem(self, region: str, rotation: int = 0) -> str | None:
+        """Why the image, turned by ``rotation``, holds no pattern over ``region`` (None if it has some;
+        :func:`~forensics.prnu.fingerprint.region_content_problem`), computed once per region and rotation."""
+        key = (region, rotation % 4)
+        if key not in self._content:
+            self._content[key] = _content_problem(self.image, region, rotation, self.options)
+        return self._content[key]
 
     def get(self, region: str, rotation: int, need_spectrum: bool) -> tuple[Query, _Spectrum | None]:
         key = (region, rotation)
@@ -575,6 +555,10 @@ def _score_column(settings: _MatchSettings, item: Any) -> list[MatchScore]:
     column: list[MatchScore] = []
     for fp in fingerprints:
         rots = _rotations_for(settings.rotations, prepared.image.shape, fp)
+        problem = prepared.content_problem(fp.region, rots[0])
+        if problem is not None:  # no score at all: a number would be taken at face value
+            column.append(MatchScore(metric, math.nan, 0, math.nan, None, problem))
+            continue
         best: MatchScore | None = None
         for rot in rots:
             q, spec = prepared.get(fp.region, rot, metric == "pce")
@@ -645,6 +629,8 @@ def score_matrix(
     fingerprints = list(fingerprints)
     if not fingerprints:
         raise UsageError("no fingerprints to score against")
+    for i, fp in enumerate(fingerprints):
+        check_fingerprint(fp, f"fingerprint {i}")
     settings = _MatchSettings(tuple(fingerprints), metric, sigma, shift_range, exclusion, rotations, workers,
                               dict(query_options))
     ex = resolve(executor)
@@ -670,7 +656,8 @@ class SetMatch:
     """Every image of a set scored against one fingerprint, with a decision at a threshold (:func:`match_set`).
 
     ``scores`` holds one row per image: ``file``, ``score`` (the metric's value), ``ncc``, ``rotation``
-    (quarter turns), ``pce`` (:meth:`PceResult.to_dict` or None) and ``match`` (None without a threshold).
+    (quarter turns), ``pce`` (:meth:`PceResult.to_dict` or None), ``match`` (None without a threshold) and
+    ``excluded`` (why a content-free image was not scored: then ``score``, ``ncc`` and ``match`` are None).
     """
 
     fingerprint: str
@@ -686,10 +673,15 @@ class SetMatch:
         """Images reaching the threshold (None without one)."""
         return sum(1 for r in self.scores if r["match"]) if self.threshold is not None else None
 
+    @property
+    def excluded(self) -> list[dict[str, Any]]:
+        """The rows of content-free images (not scored)."""
+        return [r for r in self.scores if r.get("excluded") is not None]
+
     def to_dict(self) -> dict[str, Any]:
         return {"fingerprint": self.fingerprint, "set": self.set, "region": self.region, "metric": self.metric,
                 "threshold": self.threshold, "shift_search": self.shift_search, "n_images": len(self.scores),
-                "n_match": self.n_match, "scores": self.scores}
+                "n_match": self.n_match, "n_excluded": len(self.excluded), "scores": self.scores}
 
 
 def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, threshold: float | None = None,
@@ -718,19 +710,32 @@ def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, th
     ------
     UsageError
         A shift search with NCC.
+    InputError
+        Every image is content-free over the fingerprint's region (:mod:`forensics.io.content`); images that
+        are so among others are not scored (their rows say why).
     """
     _check_metric(metric)
     if metric == "ncc" and shift_range != 0:
         raise UsageError("--shift-range applies to PCE only; drop it or use --metric pce")
+    if threshold is not None and not math.isfinite(threshold):
+        raise UsageError(f"threshold={threshold}: give a finite number (e.g. 60 for PCE)")
     if threshold is None and metric == "pce":
         threshold = PCE_THRESHOLD
+    check_fingerprint(fingerprint, name or "fingerprint")
     scores, details = score_matrix([fingerprint], dataset.frames, metric, sigma=sigma, shift_range=shift_range,
                                    progress=progress, total=len(dataset), details=True, executor=executor)
     rows = []
     for frame, value, d in zip(dataset.frames, scores[0], details[0]):
-        decision = None if threshold is None else bool(value >= threshold)
-        rows.append({"file": frame.file, "score": float(value), "ncc": d.ncc, "rotation": d.rotation,
-                     "pce": d.pce.to_dict() if d.pce is not None else None, "match": decision})
+        decision = None if threshold is None or d.excluded is not None else bool(value >= threshold)
+        rows.append({"file": frame.file, "score": None if d.excluded is not None else float(value),
+                     "ncc": None if d.excluded is not None else d.ncc, "rotation": d.rotation,
+                     "pce": d.pce.to_dict() if d.pce is not None else None, "match": decision,
+                     "excluded": d.excluded})
+    excluded = [r for r in rows if r["excluded"] is not None]
+    if rows and len(excluded) == len(rows):
+        raise InputError(f"{dataset.root}: every one of its {len(rows)} frame(s) is content-free over the fingerprint's "
+                         f"region, so none can be scored (first, {rows[0]['file']}: {rows[0]['excluded']}); give "
+                         "exposed images")
     search = ("zero shift" if shift_range == 0 else
               "all circular shifts" if shift_range is None else f"shifts up to ±{shift_range}")
     return SetMatch(name or "fingerprint", str(dataset.root), fingerprint.region, metric, threshold,

@@ -62,7 +62,7 @@ import pywt
 import scipy.fft
 from scipy import ndimage
 
-from forensics._shared.errors import InputError
+from forensics._shared.errors import InputError, UsageError
 from forensics._shared.arrays import full_scale, grey_luma
 from forensics._shared.parallel import thread_budget
 
@@ -479,7 +479,8 @@ def _apply_wiener_gain(spec: np.ndarray, padded: np.ndarray, noise_var: float,
 
 def _scaled_sigma(sigma: float, white_level: float) -> float:
     if not np.isfinite(sigma) or sigma <= 0:
-        raise InputError(f"sigma={sigma}: the noise level must be a positive number (8-bit scale, e.g. 3)")
+        # an option, not data: a usage error (exit 2)
+        raise UsageError(f"sigma={sigma}: the noise level must be a positive number (8-bit scale, e.g. 3)")
     if not np.isfinite(white_level) or white_level <= 0:
         raise InputError(f"white_level={white_level}: must be a positive number (the pixel value of full scale)")
     return float(sigma) * float(white_level) / 255.0

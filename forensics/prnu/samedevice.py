@@ -74,6 +74,7 @@ from forensics.prnu.fingerprint import (
     Region,
     build_fingerprints,
     parse_region,
+    region_content_problem,
 )
 from forensics.prnu.match import QUERY_SIGMA, prepare_query, score_pair
 from forensics.stats.scores import DetCurve, auc, bootstrap_eer, det_curve, eer, eer_convex_hull
@@ -407,13 +408,18 @@ def eer_verdict(
 
 @dataclass(frozen=True)
 class SetSummary:
-    """What one set contributed: counts, files, and its scores."""
+    """What one set contributed: counts, files, and its scores.
+
+    ``excluded`` lists the content-free images (:mod:`forensics.io.content`) left out of its fingerprint and
+    of its scores, ``(file, why)``; ``own`` and ``other`` hold the scores of the others only.
+    """
 
     plan: SetPlan
     fingerprint_files: list[str]
     own: np.ndarray
     other: np.ndarray
     eer: float
+    excluded: tuple[tuple[str, str], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -423,6 +429,7 @@ class SetSummary:
             "own_fingerprint_scores": self.own.tolist(),
             "other_fingerprint_scores": self.other.tolist(),
             "eer_own_vs_other": self.eer,
+            "excluded": [{"file": f, "reason": why} for f, why in self.excluded],
         })
         return out
 
@@ -578,19 +585,22 @@ def same_device(
     Raises
     ------
     InputError
-        A set has fewer than 2 images, or frames differ in size.
+        A set has fewer than 2 images, frames differ in size, or a set's fingerprint images or scoring images
+        are all content-free (constant, black or saturated: :mod:`forensics.io.content`; some such images
+        are left out, with a warning).
     UsageError
-        Bad counts or options.
+        Bad counts or options, or both sets are the same images (sets sharing some images get a warning).
     """
     rng = as_generator(rng)
     _check_options(ageing_residual, options)
     ex = resolve(executor)
     region = parse_region(region)
     images_a, images_b = _open_sets(set_a, set_b, names)
+    overlap = _shared_images(images_a, images_b)
     plans = [plan_set(len(s), rng, name=s.name, fingerprint_images=fingerprint_images, score_images=score_images,
                       ageing_fingerprints=ageing_fingerprints if ageing else 0, ageing_images=ageing_images)
              for s in (images_a, images_b)]
-    warnings = [w for p in plans for w in p.warnings]
+    warnings = [w for p in plans for w in p.warnings] + ([overlap] if overlap else [])
 
     # 1. the two fingerprints
     fps = [_build_fingerprint(s, p.fingerprint, region, fingerprint_sigma, ex, progress, f"fingerprint {s.name}",
@@ -601,16 +611,20 @@ def same_device(
         raise InputError(f"{images_a.name} has {shape_a[0]}×{shape_a[1]} frames, {images_b.name} "
                          f"{shape_b[0]}×{shape_b[1]}; both sets must come at one frame size and orientation")
     # 2. scores: each scoring image's residual once, against both fingerprints
-    own_other = [_score_set(s, p.score, fps[k], fps[1 - k], region, query_sigma, ex, progress, options)
-                 for k, (s, p) in enumerate(zip((images_a, images_b), plans))]
-    (a_own, a_other), (b_own, b_other) = own_other
+    scored = [_score_set(s, p.score, fps[k], fps[1 - k], region, query_sigma, ex, progress, options)
+              for k, (s, p) in enumerate(zip((images_a, images_b), plans))]
+    excluded = [tuple((d["file"], d["reason"]) for d in fp.parameters.get("excluded_frames", [])) + left_out
+                for fp, (_, _, left_out) in zip(fps, scored)]
+    warnings += [f"{s.name}: {len(x)} content-free image(s) left out of its fingerprint and scores (first, {x[0][0]}: "
+                 f"{x[0][1]})" for s, x in zip((images_a, images_b), excluded) if x]
+    (a_own, a_other, _), (b_own, b_other, _) = scored
     verdict = eer_verdict(np.concatenate([a_own, b_own]), np.concatenate([a_other, b_other]), rng,
                           n_boot=n_boot, level=level, different_below=different_below)
-    if len(plans[0].score) < score_images or len(plans[1].score) < score_images:
+    if len(plans[0].score) < score_images or len(plans[1].score) < score_images or any(excluded):
         warnings.append(_power_warning(verdict, score_images, level))
     summaries = [
-        SetSummary(p, list(fp.files), own, other, float(eer(own, other).eer))
-        for p, fp, (own, other) in zip(plans, fps, own_other)
+        SetSummary(p, list(fp.files), own, other, float(eer(own, other).eer), x)
+        for p, fp, (own, other, _), x in zip(plans, fps, scored, excluded)
     ]
     del fps
 
@@ -672,28 +686,63 @@ class _Scoring:
     options: dict[str, Any]
 
 
-def _score_image(task: _Scoring, index: int) -> tuple[float, float]:
-    """Work item: NCC of scoring image ``index`` with its own set's and the other set's fingerprint (one residual)."""
+def _score_image(task: _Scoring, index: int) -> tuple[float, float, str | None]:
+    """Work item: NCC of scoring image ``index`` with its own set's and the other set's fingerprint (one residual);
+    a content-free image is not scored (NaN, NaN and why)."""
     images = task.images
     shape = tuple(task.own.frame_shape)
     image = images.load(index)
     if tuple(image.shape[:2]) != shape:
         raise InputError(f"{images.sources[index]}: frame is {image.shape[0]}×{image.shape[1]}, the others are "
                          f"{shape[0]}×{shape[1]}")
+    problem = region_content_problem(image, task.region, **task.options)
+    if problem is not None:
+        return math.nan, math.nan, problem
     query = prepare_query(image, task.region, sigma=task.sigma, source=images.sources[index], **task.options)
     del image
-    return score_pair(task.own, query, "ncc").value, score_pair(task.other, query, "ncc").value
+    return score_pair(task.own, query, "ncc").value, score_pair(task.other, query, "ncc").value, None
 
 
 def _score_set(images: ImageSet, indices: Sequence[int], own_fp: Fingerprint, other_fp: Fingerprint, region: Region,
                query_sigma: float, executor: Executor, progress: Progress,
-               options: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """NCC of each scoring image with its own set's and the other set's fingerprint, in index order."""
+               options: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, tuple[tuple[str, str], ...]]:
+    """NCC of each scoring image with its own set's and the other set's fingerprint, in index order, and the
+    content-free images left out ``(file, why)``.
+
+    Raises
+    ------
+    InputError
+        Every scoring image of the set is content-free.
+    """
     task = _Scoring(images, own_fp, other_fp, region, query_sigma, dict(options))
-    pairs = list(executor.map(_score_image, list(indices), shared=task, progress=progress,
-                              desc=f"scoring {images.name}"))
-    scores = np.array(pairs, dtype=np.float64).reshape(len(pairs), 2)
-    return scores[:, 0].copy(), scores[:, 1].copy()
+    results = list(executor.map(_score_image, list(indices), shared=task, progress=progress,
+                                desc=f"scoring {images.name}"))
+    left_out = tuple((images.sources[i], why) for i, (_, _, why) in zip(indices, results) if why is not None)
+    if results and len(left_out) == len(results):
+        raise InputError(f"{images.name}: every one of its {len(results)} scoring image(s) is content-free (first, "
+                         f"{left_out[0][0]}: {left_out[0][1]}); give exposed images")
+    kept = [(a, b) for a, b, why in results if why is None]
+    scores = np.array(kept, dtype=np.float64).reshape(len(kept), 2)
+    return scores[:, 0].copy(), scores[:, 1].copy(), left_out
+
+
+def _shared_images(a: ImageSet, b: ImageSet) -> str | None:
+    """The protocol compares two sets: refuse one set given twice; a warning when they share some image files.
+
+    Raises
+    ------
+    UsageError
+        Both sets are the same files (by their resolved paths).
+    """
+    files_a = {os.path.realpath(src) for src in a.sources if os.path.isfile(src)}
+    shared = [src for src in b.sources if os.path.isfile(src) and os.path.realpath(src) in files_a]
+    if not shared:
+        return None
+    if len(shared) == len(b) == len(a) == len(files_a):
+        raise UsageError(f"{a.name} and {b.name} are the same {len(a)} images: the same-device test compares two "
+                         "different sets; give two sets")
+    return (f"{len(shared)} image(s) are in both {a.name} and {b.name} (first: {shared[0]}): a shared image is "
+            "scored against a fingerprint it may have helped build, which pushes the EER towards 50 %")
 
 
 def _power_warning(verdict: EerVerdict, score_images: int, level: float) -> str:

@@ -25,10 +25,13 @@ def plot_best_pce(ax, queries: list[QueryIdentification]) -> None:
     x = np.arange(len(queries))
     best = np.array([q.best.pce if q.best else np.nan for q in queries], float)
     need = np.array([q.pce_threshold if math.isfinite(q.pce_threshold) else np.nan for q in queries], float)
-    attributed = np.array([q.attributed for q in queries], bool)
+    decision = np.array([q.decision for q in queries])
     shown = _signed_log(best)
-    ax.scatter(x[attributed], shown[attributed], color="C2", s=18, zorder=3, label="attributed")
-    ax.scatter(x[~attributed], shown[~attributed], color="C3", s=18, marker="x", zorder=3, label="unknown")
+    for kind, style in (("attributed", dict(color="C2", s=18)), ("unknown", dict(color="C3", s=18, marker="x")),
+                        ("ambiguous", dict(color="C1", s=22, marker="D"))):
+        chosen = decision == kind
+        if chosen.any() or kind != "ambiguous":
+            ax.scatter(x[chosen], shown[chosen], zorder=3, label=kind, **style)
     ax.scatter(x, _signed_log(need), color="0.3", marker="_", s=120, zorder=2, label="PCE needed at the p_FA")
     runner = np.array([q.runner_up.pce if q.runner_up else np.nan for q in queries], float)
     if np.isfinite(runner).any():
@@ -51,8 +54,10 @@ def _geometry(q: QueryIdentification) -> str:
 def add_identification(result: IdentificationResult, rep: Report, *, prefix: str = "") -> None:
     """Add the per-image best PCE against its threshold and the identification table to a Report."""
     n = len(result.queries)
+    others = "".join(f", {result.n_decided(d)} {d}" for d in ("ambiguous", "excluded") if result.n_decided(d))
     rep.text(f"{n} images against {len(result.devices)} fingerprints: {result.n_attributed} attributed, "
-             f"{n - result.n_attributed} unknown, at a false-alarm probability of {result.pfa:g} per image.")
+             f"{result.n_decided('unknown')} unknown{others}, at a false-alarm probability of {result.pfa:g} per "
+             "image.")
     rep.text(f"Decision: {result.correction}. The PCE normalises the peak by the correlation energy of the shifts "
              "in its 8×8 block phase, since JPEG blocks make the null variance depend on it.", note=True)
     s = result.settings
@@ -72,13 +77,26 @@ def add_identification(result: IdentificationResult, rep: Report, *, prefix: str
         plot_best_pce(ax, result.queries)
         rep.figure(fig, f"{prefix}best_pce", "Each image's best PCE against the PCE it needed for an attribution "
                    "(which grows with the positions, scales and rotations searched), and the runner-up's PCE.")
+    budgets = [(q.source, q.budget) for q in result.queries
+               if q.budget and q.budget["aligned"]["n_tests"] and q.budget["searched"]["n_tests"]]
+    if budgets:
+        rep.table(["file", "aligned tests", "aligned share", "PCE needed aligned", "searched positions",
+                   "searched share", "PCE needed searched"],
+                  [[f, b["aligned"]["n_tests"], f"{100 * b['aligned']['share']:g} %", f"{b['aligned']['pce_threshold']:.1f}",
+                    b["searched"]["n_tests"], f"{100 * b['searched']['share']:g} %",
+                    f"{b['searched']['pce_threshold']:.1f}"] for f, b in budgets],
+                  caption="The false-alarm budget split between same-size images at zero shift and the crop/scale "
+                          "searches of other sensor sizes (weights summing to the number of tests)")
+    notes = [[q.source, q.decision, q.note] for q in result.queries if q.decision in ("ambiguous", "excluded")]
+    if notes:
+        rep.table(["file", "decision", "why"], notes, caption="Images not attributed to one device, and why")
     counts = result.counts()
     if counts:
         rep.table(["device", "images attributed"], [[d, k] for d, k in sorted(counts.items())])
     rep.table(
         ["file", "best device", "PCE", "p_FA (corrected)", "PCE needed", "decision", "runner-up", "runner-up PCE",
          "geometry"],
-        [[q.source, q.best.device_id if q.best else "—", f"{q.best.pce:.1f}" if q.best else "—", _p_text(q),
+        [[q.source, (" = ".join(q.matches) if q.decision == "ambiguous" else q.best.device_id) if q.best else "—", f"{q.best.pce:.1f}" if q.best else "—", _p_text(q),
           f"{q.pce_threshold:.1f}" if math.isfinite(q.pce_threshold) else "—", q.decision,
           q.runner_up.device_id if q.runner_up else "—", f"{q.runner_up.pce:.1f}" if q.runner_up else "—",
           _geometry(q)] for q in result.queries],

@@ -113,7 +113,7 @@ def match_report(result: SetMatch) -> Report:
     rep.text(f"{len(result.scores)} images of {result.set}, region {result.region}, metric "
              f"{result.metric.upper()}" + (f" at {result.shift_search}" if result.metric == "pce" else "")
              + (f", threshold {result.threshold:g}." if result.threshold is not None else ", no threshold."))
-    values = np.array([r["score"] for r in result.scores])
+    values = np.array([np.nan if r["score"] is None else r["score"] for r in result.scores], float)
     fig, ax = new_figure()
     finite = values[np.isfinite(values)]
     if result.metric == "pce" and finite.size and finite.max() > 0:
@@ -134,7 +134,9 @@ def match_report(result: SetMatch) -> Report:
     ax.set_ylabel("images")
     rep.figure(fig, "scores", "Score of each image against the fingerprint.")
     rep.table(["file", result.metric.upper(), "NCC", "rotation", "decision"],
-              [[r["file"], r["score"], r["ncc"], 90 * r["rotation"], _decision(r["match"])] for r in result.scores])
+              [[r["file"], r["score"], r["ncc"], 90 * r["rotation"], _decision(r["match"])]
+               if r.get("excluded") is None else [r["file"], "—", "—", "—", f"content-free: {r['excluded']}"]
+               for r in result.scores])
     return rep
 
 

@@ -24,7 +24,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "presets": ["PRESETS", "preset"],
         "scenes": ["pink_texture", "scene", "scene_image"],
         "simulate": [
-            "AgeingResult", "age_dataset", "aged_exposures", "make_scenes", "parse_years", "read_catalogue", "write_catalogue",
+            "AgeingResult", "age_dataset", "aged_exposures", "check_ageing_request", "expected_arrivals", "make_scenes",
+            "parse_years", "read_catalogue", "write_catalogue",
         ],
     },
 )

@@ -10,6 +10,7 @@ always defective*).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,8 @@ from forensics import __version__
 from forensics._shared.atomic import atomic_directory, refuse_inputs, write_json
 from forensics._shared.parallel import Executor, resolve, resumable_directory
 from forensics.io.dataset import Dataset, write_manifest
-from forensics._shared.errors import InputError
+from forensics._shared.errors import InputError, UsageError
+from forensics._shared.limits import require_ages, require_memory
 from forensics.io.images import write_image
 from forensics.sensor.model import Device, SensorModel
 from forensics._shared.progress import Progress, no_progress
@@ -32,25 +34,48 @@ from forensics.sensor.scenes import scene_image
 def parse_years(spec: str) -> list[float]:
     """Parse ``start:stop:step`` (inclusive of stop) or a comma list into sample ages in years.
 
+    The ages are finite, ≥ 0, distinct (also in their folder names, :func:`step_name`: one decimal) and at
+    most :func:`~forensics._shared.limits.age_limit` many — counted before the list is built, so that
+    ``0:1e9:1`` is refused at once.
+
+    Raises
+    ------
+    UsageError
+        Naming ``--years`` and what to give instead.
+
     >>> parse_years("0:96:8")[:3], len(parse_years("0:96:8"))
     ([0.0, 8.0, 16.0], 13)
     """
     spec = spec.strip()
+    what = f"--years '{spec}'"
     try:
         if ":" in spec:
             parts = [float(p) for p in spec.split(":")]
-            if len(parts) != 3 or parts[2] <= 0 or parts[1] < parts[0]:
+            if len(parts) != 3 or not all(map(math.isfinite, parts)) or parts[2] <= 0 or parts[1] < parts[0]:
                 raise ValueError
             start, stop, step = parts
+            count = (stop - start) / step + 1  # may be inf for a denormal step: checked before int()
+            require_ages(count, what)
             n = int(np.floor((stop - start) / step + 1e-9)) + 1
             years = [start + i * step for i in range(n)]
         else:
-            years = sorted(float(p) for p in spec.split(","))
+            years = [float(p) for p in spec.split(",")]
+            if not all(map(math.isfinite, years)):
+                raise ValueError
     except ValueError:
-        raise InputError(f"--years '{spec}': give START:STOP:STEP with STEP > 0 (e.g. 0:96:8) or a list (0,4,8)") from None
+        raise UsageError(f"{what}: give START:STOP:STEP with finite numbers and STEP > 0 (e.g. 0:96:8) or a "
+                         "list of ages (0,4,8)") from None
+    require_ages(len(years), what)
     if any(y < 0 for y in years):
-        raise InputError(f"--years '{spec}': ages must be ≥ 0")
-    return years
+        raise UsageError(f"{what}: ages must be ≥ 0")
+    names: dict[str, float] = {}
+    for age in sorted(years):
+        name = step_name(age)
+        if name in names:
+            twice = "is given twice" if names[name] == age else f"and {names[name]:g} share the folder {name}"
+            raise UsageError(f"{what}: the age {age:g} {twice}; give each age once, at least 0.1 year apart")
+        names[name] = age
+    return sorted(years)
 
 
 def step_name(age: float) -> str:
@@ -74,6 +99,39 @@ class AgeingResult:
         return {"out": str(self.out), "steps": [str(s) for s in self.steps], "ages": self.ages,
                 "n_images": self.n_images, "defects": self.catalogue_rows, "counts": self.counts,
                 "sensor": self.sensor}
+
+
+#: Peak memory of :meth:`SensorModel.realize` per raw defect arrival: RSS measured for 17 and 69 million
+#: arrivals on 1 MP (sensor H, rate × 20,000 and × 80,000, 96 years): about 240 bytes each.
+ARRIVAL_BYTES = 240
+#: Peak memory of one scene per pixel: RSS of :func:`~forensics.sensor.scenes.scene_image` measured at 2048² and
+#: 4096²: grey textures 40 bytes, colour textures 56, photographs 86–88 (a bundled photograph is resized in
+#: float64 up to 1.6× the frame).
+SCENE_BYTES_PER_PIXEL = 96
+
+
+def expected_arrivals(model: SensorModel, span: float) -> float:
+    """The mean number of defects the arrival effects of ``model`` draw over ``span`` years (before sites
+    repeat): constant rates (``rate_partial``, ``rate_stuck``), clusters (``rate`` × ``mean_size``) and
+    accelerating growth (``theta`` · span^``beta``), per megapixel."""
+    from forensics.sensor.model import Stage
+
+    per_mp = 0.0
+    for effect in model.effects:
+        if effect.stage != Stage.ARRIVAL:
+            continue
+        per_mp += (getattr(effect, "rate_partial", 0.0) + getattr(effect, "rate_stuck", 0.0)) * span
+        per_mp += getattr(effect, "rate", 0.0) * getattr(effect, "mean_size", 1.0) * span
+        if hasattr(effect, "theta"):
+            per_mp += effect.theta * span ** getattr(effect, "beta", 1.0)
+    return per_mp * model.megapixels
+
+
+def check_ageing_request(model: SensorModel, ages: list[float], what: str = "the ageing") -> None:
+    """Refuse (:class:`UsageError`, before anything is drawn) a defect history that would not fit in memory."""
+    n = expected_arrivals(model, max(ages, default=0.0))
+    require_memory(ARRIVAL_BYTES * n, f"{what} (about {n:,.0f} defect arrivals over {max(ages, default=0.0):g} "
+                                      "years)")
 
 
 def source_bit_depth(dtype: np.dtype) -> int:
@@ -156,7 +214,8 @@ def age_dataset(
               "sensor": sensor_name, "seed": seed, "t0": t0, "ages": list(ages), "model": model.to_dict(),
               "source": str(source.root), "forensics_version": __version__}
     config = {**sensor, "files": [f.file for f in source.frames], "outputs": files}
-    with resumable_directory(out, config, force=force) as (work, checkpoint):
+    # The sources' content digests join the stamp: a source replaced after an interruption is not mixed in.
+    with resumable_directory(out, config, force=force, inputs=[f.path for f in source.frames]) as (work, checkpoint):
         for name in names:
             (work / name).mkdir(exist_ok=True)
         job = _AgeingJob(device, contexts, names, rng, first_dtype.str, tuple(shape), str(work))
@@ -274,6 +333,7 @@ def make_scenes(out: str | os.PathLike, n: int, shape: tuple[int, int], rng: Rng
     from forensics.io.dataset import open_dataset
 
     out = Path(out)
+    require_memory(SCENE_BYTES_PER_PIXEL * shape[0] * shape[1], f"a {shape[1]}×{shape[0]} scene")
     rng = as_generator(rng)
     rows = []
     with atomic_directory(out, force=force) as tmp:

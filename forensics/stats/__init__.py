@@ -1,4 +1,5 @@
-"""Statistics shared by every domain: verification scores (ROC, EER, DET, bootstrap intervals), count
+"""Statistics shared by every domain: verification scores (ROC, EER, DET, bootstrap intervals; EERs whose
+comparisons share images resampled by class, ``clustered``), count
 statistics (exact Garwood / Clopper–Pearson / mid-p intervals, Poisson regression, trend tests, deviance),
 the moments of clipped and quantised readouts (near 0 and full scale), and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
 those are in :mod:`forensics.report.scores`.
@@ -15,6 +16,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "poisson_glm", "trend_test", "laplace_trend_z",
         ],
         "censored": ["clipped_normal_moments", "readout_moments"],
+        "clustered": ["ClassBootstrap", "PairedScores", "binned_eer", "class_bootstrap_eer", "class_weights"],
         "scores": [
             "BootstrapResult", "DetCurve", "EerResult", "OperatingPoint", "Roc", "as_scores", "auc",
             "bootstrap_ci", "bootstrap_eer", "decision_threshold_at_far", "det_curve", "eer", "eer_convex_hull",

@@ -11,7 +11,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
         "trials": [
-            "Metric", "ValidationResult", "ValidationSettings", "dating_records", "defects_records",
+            "Metric", "ValidationResult", "ValidationSettings", "check_request", "dating_records", "defects_records",
             "summarise_dating", "summarise_defects", "validate_dating", "validate_defects",
         ],
         "truth": ["TruthMatch", "count_true", "match_truth"],

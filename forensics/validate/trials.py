@@ -49,7 +49,8 @@ from typing import Any
 
 import numpy as np
 
-from forensics._shared.errors import InputError
+from forensics._shared.errors import InputError, UsageError
+from forensics._shared.limits import require_memory
 from forensics._shared.parallel import Executor, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
@@ -104,6 +105,28 @@ class ValidationSettings:
         lam = lam_ps or lam_s
         mp = self.shape[0] * self.shape[1] / 1e6
         return self.target_new / (lam * mp * self.span)
+
+
+#: Working memory of one trial per pixel beyond the scene pool: peak RSS measured at 1024² (defects 71 bytes,
+#: dating 136 bytes).
+TRIAL_BYTES_PER_PIXEL = 150
+#: Pixels left on a side inside the median window's border, at the least, for a threshold to be fitted.
+MIN_ANALYSED_SIDE = 8
+
+
+def check_request(settings: ValidationSettings, workers: int = 1) -> None:
+    """Refuse (:class:`~forensics._shared.errors.UsageError`) a validation whose frames are too small for the
+    detection window, or that would not fit in memory: the scene pool (``settings.pool`` float32 frames) is
+    held here and by each of ``workers`` worker processes, and every worker runs one trial at a time."""
+    h, w = settings.shape
+    least = 2 * (settings.q // 2) + MIN_ANALYSED_SIDE
+    if min(h, w) < least:
+        raise UsageError(f"--size {w}x{h}: too small for the {settings.q}×{settings.q} median window, whose border "
+                         f"is left out of the analysis; give at least {least}x{least}")
+    pixels = h * w
+    nbytes = pixels * (4 * settings.pool * (1 + workers) + TRIAL_BYTES_PER_PIXEL * workers)
+    require_memory(nbytes, f"validation at {settings.shape[1]}×{settings.shape[0]} with {workers} worker(s) "
+                           f"(a pool of {settings.pool} scenes)")
 
 
 def scene_pool(settings: ValidationSettings, rng: RngLike) -> list[np.ndarray]:

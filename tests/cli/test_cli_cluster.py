@@ -79,7 +79,7 @@ def test_cluster_json_and_report(cli_json, collection, tmp_path):
 def test_cluster_refuses_bad_input_and_existing_output(cli, collection, tmp_path):
     folder, _ = collection
     code, _, err = cli("cluster", tmp_path / "missing", "-o", tmp_path / "out")
-    assert code == 3 and "not a folder" in err
+    assert code == 3 and "missing: does not exist" in err
     empty = tmp_path / "empty"
     empty.mkdir()
     assert cli("cluster", empty, "-o", tmp_path / "out")[0] == 3

@@ -175,7 +175,7 @@ def test_same_device_report_has_det_curve(cli, data, tmp_path):
 
 
 @pytest.mark.parametrize("argv, fragment", [
-    (["same-device", "{missing}", "{cam1}"], "not a folder"),
+    (["same-device", "{missing}", "{cam1}"], "missing: does not exist"),
     (["fingerprint", "build", "{empty}", "-o", "{tmp}/x.npz"], "no images found"),
     (["fingerprint", "match", "{cam1}/cam1_000.png", "{cam2}"], "not a fingerprint file"),
     (["fingerprint", "match", "{tmp}/none.npz", "{cam2}"], "no such fingerprint file"),

@@ -107,12 +107,12 @@ def test_a_run_interrupted_in_process_resumes_on_workers_to_the_identical_result
     masek = DyingMasek(2 * 12 + 5)  # two whole (sensor, age) tasks of 12 images, then die inside the third
     with pytest.raises(Interrupted):
         _run(irises, Executor("in-process"), [masek, load_matcher("ko", masek.segmenter)], checkpoint=ckpt)
-    assert sorted(p.name for p in ckpt.glob("item-*.pkl")) == ["item-sensor00-age000.pkl", "item-sensor01-age000.pkl"]
+    assert sorted(p.name for p in ckpt.glob("item-*.npz")) == ["item-sensor00-age000.npz", "item-sensor01-age000.npz"]
     with Executor("processes", workers=2) as ex:
         resumed = _run(irises, ex, checkpoint=ckpt)
     assert resumed.resumed_units == 2 * 2 * 2  # two tasks × two matchers × two protocols
     assert_identical(resumed, reference)
-    assert len(list(ckpt.glob("item-*.pkl"))) == 4
+    assert len(list(ckpt.glob("item-*.npz"))) == 4
     with pytest.raises(UsageError, match="other settings"):
         _run(irises, seed=SEED + 1, checkpoint=ckpt)
 

@@ -22,7 +22,10 @@ def test_captured_formats():
     assert parse_captured("2009-07-02T12:00:00") == pytest.approx(2009.5)  # 2009 has 365 days; mid-year
     assert parse_captured("2010-01-01") == 2010.0
     assert parse_captured("2009-07-02T12:00:00Z") == pytest.approx(2009.5)
-    for bad in ("yesterday", "2009-13-01", "12"):
+    assert parse_captured("20090702T120000") == pytest.approx(2009.5)  # ISO 8601 basic form
+    assert parse_captured("20100101") == 2010.0
+    assert parse_captured("1975") == 1975.0 and parse_captured("2199.99") == 2199.99  # the plausible range's ends
+    for bad in ("yesterday", "2009-13-01", "12", "1974.99", "2200", "2200-01-01", "1970-01-01T00:00:00Z", "nan", "inf"):
         with pytest.raises(ValueError):
             parse_captured(bad)
 
@@ -103,8 +106,11 @@ def test_bad_manifest_names_file_line_and_field(tmp_path, manifest, match):
 def test_empty_folder_and_not_a_folder(tmp_path):
     with pytest.raises(InputError, match="no images found"):
         open_dataset(tmp_path)
-    with pytest.raises(InputError, match="not a folder"):
+    with pytest.raises(InputError, match="nope: does not exist"):
         open_dataset(tmp_path / "nope")
+    (tmp_path / "file.png").write_bytes(b"")
+    with pytest.raises(InputError, match="file.png: not a folder"):
+        open_dataset(tmp_path / "file.png")
 
 
 def test_mixed_sizes_name_the_odd_file(tmp_path):
@@ -134,7 +140,7 @@ def test_manifest_paths_leaving_the_folder_are_refused(tmp_path):
     outside.mkdir()
     write_image(outside / "secret.png", np.zeros((8, 10), np.uint8))
     root = tmp_path / "set"
-    _folder(root, n=2)
+    _folder(root, n=3)
     (root / "link.png").symlink_to(outside / "secret.png")
     rows = {"dotdot": "../outside/secret.png", "absolute": str(outside / "secret.png"), "symlink": "link.png"}
     for kind, name in rows.items():
@@ -144,7 +150,7 @@ def test_manifest_paths_leaving_the_folder_are_refused(tmp_path):
         ds = open_dataset(root, allow_outside=True)
         assert ds[1].path.resolve() == (outside / "secret.png").resolve(), kind
     # A path that only passes through '..' but ends inside stays allowed, and so do links within the folder.
-    (root / "inner.png").symlink_to(root / "f1.png")
+    (root / "inner.png").symlink_to(root / "f2.png")
     (root / "manifest.csv").write_text("file\nf0.png\n../set/f1.png\ninner.png\n")
     assert len(open_dataset(root)) == 3
 

@@ -95,8 +95,8 @@ def test_metadata_from_the_source_images_exif(db, exif_images):
     assert entry.n_images == 3 and entry.quality == pytest.approx(3 * (1 - fp.parameters["excluded_pixel_fraction"]))
     assert entry.provenance["source_folder"] == str(exif_images[0].parent.resolve())
     assert entry.provenance["files"] == [str(p) for p in exif_images]
-    # arguments win over EXIF
-    other = db.add(fp, "mine", make="M", model="N", serial="S")
+    # arguments win over EXIF (another fingerprint: one pattern cannot be two devices)
+    other = db.add(build_fingerprint(exif_images[:2]), "mine", make="M", model="N", serial="S")
     assert (other.make, other.model, other.serial) == ("M", "N", "S")
 
 
@@ -347,7 +347,7 @@ WRITER = textwrap.dedent("""
 
     db, name = FingerprintDatabase(sys.argv[1]), sys.argv[2]
     for i in range(6):
-        k = np.full((64, 64), i, np.float32)
+        k = np.random.default_rng([ord(name), i]).standard_normal((64, 64)).astype(np.float32)
         db.add(Fingerprint(k, "full", 3.0, [], 1, (64, 64)), f"{name}{i}")
 """)
 
@@ -361,4 +361,140 @@ def test_two_writer_processes_are_served_one_at_a_time(db):
     ids = [e.device_id for e in db.entries()]
     assert ids == [f"{name}{i}" for name in "pq" for i in range(6)]
     assert _files(db) == sorted(Path(e.file).name for e in db.entries())
-    assert all(float(db.load(d).K[0, 0]) == int(d[1:]) for d in ids)
+    assert all(np.array_equal(db.load(d).K, np.random.default_rng([ord(d[0]), int(d[1:])]).standard_normal((64, 64))
+                              .astype(np.float32)) for d in ids)
+
+
+# ----------------------------------------------------------------------------- integrity (issue 26)
+
+
+def _set_file(db: FingerprintDatabase, device_id: str, value: str) -> None:
+    with sqlite3.connect(db.index) as con:
+        con.execute("UPDATE devices SET file = ? WHERE device_id = ?", (value, device_id))
+    con.close()
+
+
+@pytest.mark.parametrize("planted", ["absolute", "parent", "link", "subfolder"])
+def test_index_file_column_cannot_reach_outside_the_database(db, tmp_path, planted):
+    """D03: a ``file`` naming a path outside the fingerprints folder (absolute, '..', a link to a victim,
+    a nested folder) is a damaged index: remove, add --replace and load refuse, and nothing is deleted."""
+    entry = db.add(make_fp(0), "camA")
+    victim = tmp_path / "victim.npz"
+    victim.write_bytes(b"precious")
+    if planted == "absolute":
+        _set_file(db, "camA", str(victim))
+    elif planted == "parent":
+        _set_file(db, "camA", "../victim.npz")
+    elif planted == "link":
+        (db.folder / FINGERPRINTS / "link.npz").symlink_to(victim)
+        _set_file(db, "camA", f"{FINGERPRINTS}/link.npz")
+    else:
+        _set_file(db, "camA", f"{FINGERPRINTS}/sub/x.npz")
+    before = sorted(p.name for p in (db.folder / FINGERPRINTS).iterdir())
+    for action in (lambda: db.remove("camA"), lambda: db.add(make_fp(1), "camA", replace=True),
+                   lambda: db.add(make_fp(2), "camB"), lambda: db.load("camA")):
+        with pytest.raises(InputError, match="the index is damaged"):
+            action()
+    assert victim.read_bytes() == b"precious"
+    assert sorted(p.name for p in (db.folder / FINGERPRINTS).iterdir()) == before  # the real file was not swept
+    assert (db.folder / entry.file).is_file() and [e.device_id for e in db.entries()] == ["camA"]
+
+
+def test_a_fingerprints_folder_that_is_a_link_is_refused(tmp_path):
+    db = FingerprintDatabase(tmp_path / "db", create=True)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "keep.npz").write_bytes(b"x")
+    (db.folder / FINGERPRINTS).rmdir()
+    (db.folder / FINGERPRINTS).symlink_to(elsewhere)
+    with pytest.raises(InputError, match="is a symbolic link"):
+        FingerprintDatabase(db.folder)
+    assert (elsewhere / "keep.npz").read_bytes() == b"x"
+
+
+def _edit_metadata(path: Path, **changes) -> None:
+    """Rewrite a fingerprint file's metadata in place (as an editor of the .npz would)."""
+    with np.load(path) as data:
+        k, meta = data["K"], json.loads(str(data["meta"][()]))
+    meta.update(changes)
+    with open(path, "wb") as handle:
+        np.savez(handle, K=k, meta=np.array(json.dumps(meta)))
+
+
+@pytest.mark.parametrize("change", [{"n_images": 99}, {"sigma": 5.0}, {"files": ["x.png"]},
+                                    {"parameters": {"version": 7}}])
+def test_checksum_covers_the_metadata_not_only_k(db, change):
+    """D10: editing any metadata of a stored fingerprint is reported on load, naming the entry, even when K
+    and the index's columns are unchanged (the frame shape, which changes identify's decisions: below)."""
+    entry = db.add(make_fp(0), "camA")
+    assert {"k_sha256", "fingerprint_sha256"} <= set(entry.provenance)
+    _edit_metadata(db.folder / entry.file, **change)
+    with pytest.raises(InputError, match=r"fingerprint of device 'camA' does not match the database index \(its "
+                                         r"pattern or its metadata changed"):
+        db.load("camA")
+
+
+def test_checksum_mismatch_on_an_edited_frame_shape(db):
+    """D10 as reported: frame_shape edited (the file still self-consistent) changes what identify would search."""
+    k = np.random.default_rng(3).standard_normal((64, 64)).astype(np.float32)
+    entry = db.add(Fingerprint(k, "center:64", 3.0, [], 5, (64, 64)), "camA")
+    _edit_metadata(db.folder / entry.file, frame_shape=[64, 96])  # a centre crop of a wider frame: crops searched
+    with pytest.raises(InputError, match=r"'camA' does not match the database index \(frame 96×64"):
+        db.load("camA")
+
+
+def test_entries_of_earlier_versions_stay_readable_and_checked_on_k(db):
+    """Entries written before the full checksum (k_sha256 only) load, and a changed K is still reported."""
+    entry = db.add(make_fp(0), "old")
+    with sqlite3.connect(db.index) as con:
+        prov = json.loads(con.execute("SELECT provenance FROM devices").fetchone()[0])
+        del prov["fingerprint_sha256"]
+        con.execute("UPDATE devices SET provenance = ?", (json.dumps(prov),))
+    con.close()
+    assert np.array_equal(db.load("old").K, make_fp(0).K)
+    make_fp(5).save(db.folder / entry.file, force=True)
+    with pytest.raises(InputError, match=r"its pattern changed \(checksum of K\)"):
+        db.load("old")
+
+
+def test_a_fingerprint_identical_to_another_device_is_refused(db, tmp_path):
+    """D16: the same K under a second id (one file added twice, or a copy) is refused; under its own id with
+    --replace it is allowed."""
+    db.add(make_fp(0), "camA")
+    with pytest.raises(UsageError, match="identical to the fingerprint of device 'camA'"):
+        db.add(make_fp(0), "camB")
+    path = make_fp(0).save(tmp_path / "copy.npz")
+    with pytest.raises(UsageError, match="copy.npz: identical"):
+        db.add_many([path], ["camC"])
+    with pytest.raises(UsageError, match="identical"):  # twice in one addition
+        db.add_many([make_fp(1), make_fp(1)], ["x", "y"])
+    assert [e.device_id for e in db.entries()] == ["camA"]
+    db.add(make_fp(0), "camA", replace=True)
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "constant"])
+def test_a_fingerprint_without_a_usable_pattern_is_never_stored(db, tmp_path, bad):
+    """D20: an all-NaN (or any non-finite) or constant K is refused by add, from memory or from a file."""
+    k = make_fp(0).K.copy()
+    if bad == "nan":
+        k[:] = np.nan
+    elif bad == "inf":
+        k[3, 4] = np.inf
+    else:
+        k[:] = 0.5
+    fp = Fingerprint(k, "full", 3.0, [], 4, SHAPE)
+    with pytest.raises(InputError, match="NaN or infinite|constant"):
+        db.add(fp, "camA")
+    fp.save(tmp_path / "bad.npz")
+    with pytest.raises(InputError, match="bad.npz: K (holds|is constant)"):
+        db.add_many([tmp_path / "bad.npz"], ["camA"])
+    assert len(db) == 0 and _files(db) == []
+
+
+def test_lookups_and_removal_strip_the_device_id(db):
+    """D21: ids are stored stripped, so ' camA ' finds and removes 'camA'."""
+    db.add(make_fp(0), " camA ")
+    assert [e.device_id for e in db.entries()] == ["camA"]
+    assert db.get(" camA ").device_id == "camA" and " camA " in db
+    db.remove(" camA ")
+    assert len(db) == 0 and _files(db) == []

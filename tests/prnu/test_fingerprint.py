@@ -288,3 +288,115 @@ def test_load_rejects_other_files(tmp_path):
 def test_region_is_a_value():
     assert Region("center", (32, 32)) == parse_region("center:32")
     assert str(parse_region("corners")) == "corners:128"
+
+
+# ----------------------------------------------------------------------------- damaged files and content (issue 26)
+
+
+def _meta_file(path: Path, source: Path, **changes) -> Path:
+    with np.load(source) as data:
+        k, meta = data["K"], json.loads(str(data["meta"][()]))
+    for key, value in changes.items():
+        if value is ...:
+            del meta[key]
+        else:
+            meta[key] = value
+    np.savez(path, K=k, meta=np.array(json.dumps(meta)))
+    return path
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("half", "damaged one"), ("head", "damaged one"), ("crc", "damaged one"),
+    ("missing frame_shape", "metadata key 'frame_shape' is missing"),
+    ("missing region", "metadata key 'region' is missing"),
+    ("frame_shape 5", "metadata 'frame_shape' is 5, not two positive whole numbers"),
+    ("sigma text", "metadata 'sigma' is 'abc', not a positive number"),
+    ("files number", "metadata 'files' is 3, not a list of names"),
+    ("meta list", "its metadata is a JSON list"), ("npy", "a single array"), ("no K", "no 'K' in the file"),
+    ("shape", "K has shape"),
+])
+def test_damaged_fingerprint_files_give_one_line_errors(camera, tmp_path, damage, message):
+    """D20: truncated or corrupted .npz files and metadata missing a key or of the wrong type are an InputError
+    naming the file (never a traceback from zipfile, EOF, KeyError or TypeError)."""
+    good = build_fingerprint(camera["images"][:2], region="center:64").save(tmp_path / "good.npz")
+    raw = good.read_bytes()
+    bad = tmp_path / "bad.npz"
+    if damage == "half":
+        bad.write_bytes(raw[: len(raw) // 2])
+    elif damage == "head":
+        bad.write_bytes(raw[:40])
+    elif damage == "crc":  # a byte of K's data flipped: the zip's CRC fails
+        data = bytearray(raw)
+        data[len(data) // 3] ^= 0xFF
+        bad.write_bytes(bytes(data))
+    elif damage.startswith("missing"):
+        _meta_file(bad, good, **{damage.split()[1]: ...})
+    elif damage == "frame_shape 5":
+        _meta_file(bad, good, frame_shape=5)
+    elif damage == "sigma text":
+        _meta_file(bad, good, sigma="abc")
+    elif damage == "files number":
+        _meta_file(bad, good, files=3)
+    elif damage == "shape":
+        _meta_file(bad, good, shape=[32, 32])
+    elif damage == "meta list":
+        np.savez(bad, K=np.zeros((64, 64), np.float32), meta=np.array("[1, 2]"))
+    elif damage == "npy":
+        with open(bad, "wb") as handle:
+            np.save(handle, np.zeros(3))
+    else:
+        np.savez(bad, meta=np.array("{}"))
+    with pytest.raises(InputError, match=message) as info:
+        Fingerprint.load(bad)
+    assert str(info.value).startswith(str(bad)) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "constant"])
+def test_fingerprints_without_a_usable_pattern_are_refused_on_load(camera, tmp_path, bad):
+    """D20: a non-finite or constant K cannot be read back as a fingerprint (so it is never matched)."""
+    fp = build_fingerprint(camera["images"][:2], region="center:64")
+    fp.K[:] = {"nan": np.nan, "inf": np.inf, "constant": 0.0}[bad]
+    fp.save(tmp_path / "k.npz")
+    with pytest.raises(InputError, match="k.npz: K (holds 4096 NaN or infinite|is constant)"):
+        Fingerprint.load(tmp_path / "k.npz")
+
+
+def _black_with_hot_pixels(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
+    """A black frame whose only exposed pixels are 30 hot pixels (the D06 case)."""
+    frame = np.zeros(shape, np.uint8)
+    frame.flat[np.random.default_rng(7).choice(frame.size, 30, replace=False)] = rng.integers(30, 60, 30)
+    return frame
+
+
+def test_content_free_frames_are_left_out_of_a_fingerprint(camera):
+    """D06: black, saturated and constant frames among good ones are excluded (listed with why), and the
+    fingerprint is exactly the one of the good frames alone; their order among the chunks does not matter."""
+    rng = np.random.default_rng(3)
+    good = camera["images"][:10]
+    junk = [_black_with_hot_pixels(rng, SHAPE), np.full(SHAPE, 255, np.uint8), np.full(SHAPE, 90, np.uint8)]
+    mixed = good[:4] + junk[:1] + good[4:7] + junk[1:] + good[7:]
+    names = [f"f{i}.png" for i in range(len(mixed))]
+    fp = build_fingerprint(mixed, sources=names)
+    clean = build_fingerprint(good)
+    assert fp.n_images == 10 and fp.files == [n for n, im in zip(names, mixed) if any(im is g for g in good)]
+    excluded = fp.parameters["excluded_frames"]
+    assert [e["file"] for e in excluded] == ["f4.png", "f8.png", "f9.png"]
+    assert "mostly black" in excluded[0]["reason"] and "all saturated" in excluded[1]["reason"]
+    assert "constant: every pixel is 90" in excluded[2]["reason"]
+    # summed in other chunks than the clean build, so equal to rounding (same images, same weights)
+    np.testing.assert_allclose(fp.K, clean.K, rtol=0, atol=1e-6 * float(np.abs(clean.K).max()))
+    # streamed image by image and built in chunks: the same bits, skipped frames included
+    streamed = build_fingerprint(iter(mixed), sources=names)
+    np.testing.assert_array_equal(streamed.K, fp.K)
+    assert streamed.parameters["excluded_frames"] == excluded
+
+
+def test_a_set_of_content_free_frames_is_refused(camera):
+    """D06: a fingerprint of all-black frames (or of black frames with a few hot pixels) is refused with the
+    set's name and why, instead of 'matching' other black frames at PCE 10⁴."""
+    rng = np.random.default_rng(4)
+    with pytest.raises(InputError, match=r"black set: all 9 frame\(s\) given for the fingerprint are content-free, "
+                                         r".*mostly black"):
+        build_fingerprint([_black_with_hot_pixels(rng, SHAPE) for _ in range(9)], name="black set")
+    with pytest.raises(InputError, match=r"all 3 frame\(s\).*all black"):
+        build_fingerprint(iter([np.zeros(SHAPE, np.uint8)] * 3))

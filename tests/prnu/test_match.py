@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from forensics.prnu.match import (
     PCE_THRESHOLD,
     MatchScore,
     Query,
+    match_set,
     _false_alarm,
     ncc,
     orientations,
@@ -307,3 +309,55 @@ def test_regions_end_to_end(region):
     impostor = score_query(fp, camera_image(rng, natural_scene(rng, SHAPE), k_b))
     assert genuine.value > PCE_THRESHOLD and abs(impostor.value) < 15
     assert score_query(fp, camera_image(rng, natural_scene(rng, SHAPE), k_a), metric="ncc").value > 0
+
+
+# ----------------------------------------------------------------------------- content-free queries (issue 26)
+
+
+def _dataset(folder: Path, images: list[np.ndarray]) -> object:
+    from forensics.io.dataset import open_dataset
+    from forensics.io.images import write_image
+
+    folder.mkdir()
+    for i, image in enumerate(images):
+        write_image(folder / f"q{i:02d}.png", image)
+    return open_dataset(folder)
+
+
+def test_content_free_queries_are_not_scored(cameras, tmp_path):
+    """D06: a black frame with a few hot pixels, a saturated and a constant frame among real queries get no score
+    (not a PCE taken at face value); a set of nothing but such frames is refused, naming the set and why."""
+    black = np.zeros(SHAPE, np.uint8)
+    black.flat[np.random.default_rng(1).choice(black.size, 30, replace=False)] = 45
+    junk = [black, np.full(SHAPE, 255, np.uint8), np.full(SHAPE, 77, np.uint8)]
+    ds = _dataset(tmp_path / "mixed", cameras["from_a"][:2] + junk)
+    result = match_set(cameras["fp"], ds)
+    rows = result.scores
+    assert [r["excluded"] is None for r in rows] == [True, True, False, False, False]
+    assert all(r["score"] > PCE_THRESHOLD and r["match"] for r in rows[:2])
+    assert all(r["score"] is None and r["match"] is None and r["ncc"] is None for r in rows[2:])
+    assert "mostly black" in rows[2]["excluded"] and "all saturated" in rows[3]["excluded"]
+    assert result.to_dict()["n_excluded"] == 3 and result.n_match == 2
+    scores, details = score_matrix([cameras["fp"]], junk, details=True)
+    assert np.all(np.isnan(scores)) and all(d.excluded for d in details[0])
+    with pytest.raises(InputError, match="content-free"):
+        score_query(cameras["fp"], black)
+    with pytest.raises(InputError, match=r"black: every one of its 2 frame\(s\) is content-free"):
+        match_set(cameras["fp"], _dataset(tmp_path / "black", [black, np.zeros(SHAPE, np.uint8)]))
+
+
+@pytest.mark.parametrize("bad", ["nan", "constant"])
+def test_a_fingerprint_without_a_pattern_is_never_matched(cameras, bad):
+    """D20: NaN or constant K is refused by every matching entry point (not scored as PCE 0 or NaN)."""
+    fp = cameras["fp"]
+    k = np.full(fp.K.shape, np.nan if bad == "nan" else 0.0, np.float32)
+    broken = Fingerprint(k, fp.region, fp.sigma, fp.files, fp.n_images, fp.frame_shape, fp.parameters)
+    image = cameras["from_a"][0]
+    for call in (lambda: score_query(broken, image), lambda: score_matrix([broken], [image])):
+        with pytest.raises(InputError, match="NaN or infinite|constant"):
+            call()
+
+
+def test_a_threshold_that_is_not_a_number_is_refused(cameras, tmp_path):
+    with pytest.raises(UsageError, match="threshold=nan"):
+        match_set(cameras["fp"], _dataset(tmp_path / "q", cameras["from_a"][:1]), threshold=float("nan"))

@@ -102,7 +102,7 @@ def test_interrupted_build_resumes_to_the_same_fingerprint(cameras, tmp_path):
     paths = cameras["cam2"]
     config = {"test": "resume"}
     first = build_fingerprint(paths, "full", checkpoint=Checkpoint(tmp_path / "ck", config))
-    items = sorted((tmp_path / "ck").glob("item-*.pkl"))
+    items = sorted((tmp_path / "ck").glob("item-*.npz"))
     assert len(items) == 3
     items[1].unlink()  # as if the run had stopped before the second chunk finished
     resumed = build_fingerprint(paths, "full", checkpoint=Checkpoint(tmp_path / "ck", config))

@@ -13,7 +13,7 @@ import pywt
 from scipy import ndimage
 
 from forensics._shared.arrays import grey_luma
-from forensics._shared.errors import InputError
+from forensics._shared.errors import InputError, UsageError
 from forensics.prnu.residual import (
     median_residual,
     wavelet_noise,
@@ -227,8 +227,10 @@ def test_bad_input_raises_input_error(bad):
 
 
 def test_bad_sigma():
-    with pytest.raises(InputError):
-        wavelet_residual(np.zeros((20, 20)), sigma=0)
+    """An option out of range is a usage error (exit 2), not bad input data (D21)."""
+    for sigma in (0, -1, float("nan")):
+        with pytest.raises(UsageError, match="sigma"):
+            wavelet_residual(np.zeros((20, 20)), sigma=sigma)
 
 
 # ----------------------------------------------------------------------------- post-processing steps

@@ -9,6 +9,7 @@ follow from what those counts can resolve.
 from __future__ import annotations
 
 import json
+import re
 from collections import Counter
 
 import numpy as np
@@ -329,11 +330,12 @@ def test_result_to_dict_is_json_ready(one_device):
 
 def test_bad_inputs():
     rng = np.random.default_rng(14)
-    ok = [np.full((32, 32), 100, np.uint8)] * 4
-    with pytest.raises(InputError):
+    ok = [rng.integers(50, 200, (32, 32), dtype=np.uint8) for _ in range(4)]  # images with content
+    with pytest.raises(InputError, match="at least 2"):
         same_device([ok[0]], ok, rng, region="full")
-    with pytest.raises(InputError):
-        same_device(ok, [np.full((32, 40), 100, np.uint8)] * 4, rng, region="full", ageing=False, n_boot=50)
+    with pytest.raises(InputError, match="32×40"):
+        same_device(ok, [rng.integers(50, 200, (32, 40), dtype=np.uint8)] * 4, rng, region="full", ageing=False,
+                    n_boot=50)
     with pytest.raises(UsageError):
         same_device(ok, ok, rng, region="full", ageing_residual="gaussian")
     with pytest.raises(UsageError):
@@ -362,3 +364,56 @@ def test_sequences_of_arrays_and_paths(tmp_path):
     assert s.name == "set" and s.sources[1] == "set[1]"
     s = ImageSet.of(tmp_path)
     assert s.name == tmp_path.name and len(s) == 4
+
+
+# ----------------------------------------------------------------------------- refused inputs (issue 26)
+
+
+def _folder(path, images):
+    from forensics.io.images import write_image
+
+    path.mkdir()
+    for i, image in enumerate(images):
+        write_image(path / f"{i:02d}.png", image)
+    return path
+
+
+def test_one_set_given_twice_is_refused(tmp_path):
+    """D20: ``same-device X X`` (under any spelling of the folder) is a usage error, not 'indistinguishable';
+    sets sharing some image files (a link counts) get a warning."""
+    rng = np.random.default_rng(16)
+    images = [rng.integers(50, 200, (32, 32), dtype=np.uint8) for _ in range(6)]
+    folder = _folder(tmp_path / "x", images)
+    with pytest.raises(UsageError, match="are the same 6 images"):
+        same_device(folder, tmp_path / "x" / ".." / "x", rng, region="full", ageing=False)
+    other = _folder(tmp_path / "y", [rng.integers(50, 200, (32, 32), dtype=np.uint8) for _ in range(5)])
+    (other / "link.png").symlink_to(folder / "03.png")  # the same file by another name: shared
+    result = same_device(folder, other, rng, region="full", ageing=False, n_boot=50)
+    assert any(re.match(r"1 image\(s\) are in both .* \(first: .*link.png\)", w) for w in result.warnings)
+
+
+def test_content_free_sets_are_refused_and_frames_left_out(tmp_path):
+    """D07: black against white frames is refused (it said 'different devices, EER 0 %'), naming the set and
+    why; a few content-free frames among real ones are left out of the fingerprint and the scores, with a
+    warning, and the verdict is the one of the real frames."""
+    rng = np.random.default_rng(17)
+    black = [np.zeros((64, 64), np.uint8)] * 8
+    white = [np.full((64, 64), 255, np.uint8)] * 8
+    with pytest.raises(InputError, match=r"black: all 4 frame\(s\) given for the fingerprint are content-free.*"
+                                         r"all black"):
+        same_device(ImageSet.of(black, "black"), ImageSet.of(white, "white"), rng, region="full", ageing=False)
+    device = sensor_model("A", (64, 64)).realize(rng, [0.0])
+    a = simulated_set(device, 24, 0.0, 41, "a")
+    b = simulated_set(device, 24, 0.0, 42, "b")
+    with_junk = ImageSet.of([a.load(i) for i in range(24)] + white[:4], "a+white")
+    result = same_device(with_junk, b, np.random.default_rng(18), region="full", ageing=False, n_boot=200)
+    left_out = result.set_a.excluded
+    assert len(left_out) == 4 and all("all saturated" in why for _, why in left_out)
+    plan = result.set_a.plan
+    white_fp, white_score = (sum(1 for i in indices if i >= 24) for indices in (plan.fingerprint, plan.score))
+    assert white_fp + white_score == 4  # 28 images: 14 for the fingerprint, 14 scored
+    assert len(result.set_a.fingerprint_files) == len(plan.fingerprint) - white_fp
+    assert len(result.set_a.own) == len(result.set_a.other) == len(plan.score) - white_score
+    assert any("content-free" in w for w in result.warnings)
+    assert result.eer.decision == "indistinguishable"
+    json.dumps(result.to_dict())

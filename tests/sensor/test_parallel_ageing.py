@@ -121,7 +121,7 @@ def test_an_interrupted_run_resumes_to_the_identical_result(source, reference, t
         _age(source, out, ex, progress=_KillAfter(4, interrupt))
     partial = tmp_path / ".aged.partial"
     assert not out.exists() and partial.is_dir()  # nothing visible at the output; the work kept beside it
-    done = len(list((partial / ".items").glob("item-*.pkl")))
+    done = len(list((partial / ".items").glob("item-*.npz")))
     assert 4 <= done < 10
     seen = []
 

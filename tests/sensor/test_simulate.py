@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from forensics.io.dataset import open_dataset
-from forensics._shared.errors import InputError
+from forensics._shared.errors import InputError, UsageError
 from forensics.io.images import read_image, write_image
 from forensics.sensor.catalogue import STUCK
 from forensics.sensor.presets import preset
@@ -24,8 +24,10 @@ def tiff16(tmp_path):
 def test_parse_years():
     assert parse_years("0:96:8") == [8.0 * i for i in range(13)]
     assert parse_years("0,4,2.5") == [0.0, 2.5, 4.0]
-    for bad in ("0:96", "0:96:0", "a:b:c", "5:1:1", "-1,2"):
-        with pytest.raises(InputError, match="--years"):
+    # malformed, not finite, negative, repeated (also in the folder names, one decimal), too many ages
+    for bad in ("0:96", "0:96:0", "a:b:c", "5:1:1", "-1,2", "nan", "0,nan", "0:inf:1", "0:8:nan", "0,8,8",
+                "0,0.11,0.14", "0:1e6:1", "0:1:1e-320"):
+        with pytest.raises(UsageError, match="--years"):
             parse_years(bad)
 
 
