@@ -234,23 +234,17 @@ class Predictor:
         return self.censor(device, out) if clip else out
 
     def censor(self, device: Device, raw: np.ndarray) -> np.ndarray:
-        """The mean readout the data show of latent means ``raw`` (R, H, W): :func:`censored_mean` of every
-        condition (a new array), the values near a bound of all conditions computed together (one table or one
-        sort for all of them: per condition a 64 × 64 region is too few values for a table to pay)."""
-        parts = [near_bound_values(raw[r], context(device, g), self.meas.clip_level)
-                 for r, g in enumerate(self.rgroups)]
-        out = np.stack([p[0] for p in parts])
-        near = np.stack([p[1] for p in parts])
-        if near.any():
-            sigma = np.concatenate([p[2] for p in parts])
-            out[near] = distinct_readout_means(raw[near], sigma, round(float(self.meas.clip_level)))
-        return out
+        """The mean readout the data show of latent means ``raw`` (R, H, W): :func:`censored_mean` per condition
+        (a new array).  (Every condition's near-bound values computed together, for one table or one sort over
+        all of them, was tried: 31.9 against 28.9–30.3 CPU s on the standard series' 64 × 64 region.)"""
+        return np.stack([censored_mean(raw[r], context(device, g), self.meas.clip_level)
+                         for r, g in enumerate(self.rgroups)])
 
 
-def near_bound_values(mu: np.ndarray, ctx: FrameContext, full_scale: float,
-                      reach: float = 6.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``mu`` clipped to the readout's range, where it lies within ``reach`` σ of 0 or ``full_scale`` (a mask),
-    and the model's noise σ there (:func:`censored_mean` without its last step)."""
+def censored_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: float = 6.0) -> np.ndarray:
+    """The mean readout of pixels of latent mean ``mu`` that never touched 0 or ``full_scale``: ``mu`` itself
+    away from the bounds; within ``reach`` σ of one, the truncated mean of the quantised readout (σ from the
+    model's noise effects)."""
     noise = [e for e in ctx.device.model.effects if e.stage == Stage.NOISE]
     out = np.clip(mu, 0.0, full_scale)
     hi = round(float(full_scale))
@@ -258,17 +252,9 @@ def near_bound_values(mu: np.ndarray, ctx: FrameContext, full_scale: float,
     sd = np.sqrt(noise_variance(noise, out, ctx, elec) + QUANT_VAR)
     near = (out < reach * sd + 1.0) | (out > hi - reach * sd - 1.0)
     if hi < 3 or not near.any():
-        return out, np.zeros(out.shape, bool), np.zeros(0)
-    return out, near, np.sqrt(noise_variance(noise, mu[near], ctx, elec[near]))
-
-
-def censored_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: float = 6.0) -> np.ndarray:
-    """The mean readout of pixels of latent mean ``mu`` that never touched 0 or ``full_scale``: ``mu`` itself
-    away from the bounds; within ``reach`` σ of one, the truncated mean of the quantised readout (σ from the
-    model's noise effects)."""
-    out, near, sigma = near_bound_values(mu, ctx, full_scale, reach)
-    if near.any():
-        out[near] = distinct_readout_means(mu[near], sigma, round(float(full_scale)))
+        return out
+    sigma = np.sqrt(noise_variance(noise, mu[near], ctx, elec[near]))
+    out[near] = distinct_readout_means(mu[near], sigma, hi)
     return out
 
 

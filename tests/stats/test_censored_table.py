@@ -44,3 +44,19 @@ def test_both_bounds_in_one_call():
     mu, sigma = np.concatenate([low[0], high[0]]), np.concatenate([low[1], high[1]])
     exact = readout_moments(mu, sigma, 0, 255, truncate=True)[0]
     assert np.max(np.abs(distinct_readout_means(mu, sigma, 255) - exact)) < TABLE_TOLERANCE
+
+
+def test_single_level_values_as_the_sum_gives_them():
+    # values whose nearest level holds all but Φ(−10) of their mass are filled without summing (a fitted shot-noise
+    # law leaves dark pixels at σ ≪ 0.1 DN): the same moments as the sum, truncated or not, near both bounds
+    from forensics.stats.censored import _summed_readout
+
+    rng = np.random.default_rng(6)
+    mu = rng.uniform(-3.0, 6.0, 50_000)
+    sigma = np.exp(rng.uniform(np.log(1e-3), np.log(0.4), mu.size))
+    for truncate in (True, False):
+        for hi, shift in ((4095, 0.0), (255, 250.0)):
+            fast = readout_moments(mu + shift, sigma, 0, hi, truncate=truncate)
+            summed = _summed_readout(mu + shift, sigma, 0, hi, truncate, 10.0)
+            np.testing.assert_allclose(fast[0], summed[0], rtol=0, atol=1e-12)
+            np.testing.assert_allclose(fast[1], summed[1], rtol=0, atol=1e-12)
