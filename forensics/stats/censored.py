@@ -115,9 +115,9 @@ def _single_level(mu: np.ndarray, sigma: np.ndarray, at: np.ndarray, lo: int, hi
     which of ``at`` it filled.
 
     Why: what the sum gives them (the level, variance 0; truncated at a bound, the inner level next to it, as
-    :func:`_summed_readout` makes it) without summing — a fitted noise law leaves many dark pixels at σ ≪ 0.1 DN
-    (shot noise below the readout's offset), and the sum over the window of their group was most of the check's
-    time on the EMVA 1288 standard series once shot noise was in the model."""
+    :func:`_summed_readout` makes it) without summing — the model check's first look at the noise can leave dark
+    pixels at σ ≪ 0.1 DN (read noise 0 while the black level is at its start; RESULTS_check.md), and the sum over
+    the window of their group was most of its time on the EMVA 1288 standard series with shot noise in the model."""
     m, s = mu[at], sigma[at]
     c = np.rint(np.clip(m, lo, hi))
     below = np.where(c <= lo, np.inf, m - (c - 0.5))  # distance to the level's lower edge (none at the bound)
