@@ -218,8 +218,13 @@ class BlackLevel(Effect):
     def free_params(self) -> list[str]:  # type: ignore[override]
         return [] if self.known else ["level"]
 
-    def fit(self, evidence):
+    def fit(self, evidence: Any) -> "BlackLevel":
+        """The starting level: the darkest dark condition's median readout over the interior pixels (the checker's
+        bespoke start; the fit refines it).  Why: from 0 DN the checker's first look at the noise read every dark
+        pixel's level as signal and its variance as shot noise (read noise 0), and the pixel fit then predicted
+        the dark frames' censored readout with no noise (benchmarks/RESULTS_check.md, issue 27)."""
         from forensics.io.dataset import is_dark_subject
+
         if self.known:
             return self
         meas = evidence.meas
