@@ -87,7 +87,7 @@ class Evidence(EffectQuestions):
         # --- pixel channel
         self.rep = meas.repeated
         self.rgroups = [meas.groups[g] for g in self.rep]
-        fs = meas.full_scale
+        fs = meas.clip_level
         self.censored = np.stack([(meas.lo[g] <= 0) | (meas.hi[g] >= fs) for g in self.rep])
         self.usable = meas.interior[None] & ~self.censored
         self.predictor = Predictor(meas, self.rgroups)

@@ -129,14 +129,15 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         if is_pixel(e) and e.null_values():
             for pat in e.patterns(device):
                 pat.values[...] = 0.0
-    # a first look at the noise (the pixel channel's censored means near 0 and full scale depend on it)
-    n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
-    first, _, _ = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx], device, [])
-    for i, e in zip(n_idx, first):
-        effects[i] = e
     p_idx = [i for i, e in enumerate(effects) if is_pixel(e)]
     for i in p_idx:
         effects[i] = bespoke_fit(effects[i], ev)
+    # a first look at the noise (the pixel channel's censored means near 0 and full scale depend on it)
+    n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
+    first, _, _ = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx],
+                               on_device(device, effects), [])
+    for i, e in zip(n_idx, first):
+        effects[i] = e
     pix = fit_pixels(ev, pixels, device, effects, p_idx, params, max_cycles)
     effects = pix.effects
     projector = PixelProjector([c * np.sqrt(pixels.weight) for c in pix.nuisance],

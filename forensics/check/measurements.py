@@ -136,6 +136,15 @@ class Measurements:
     #: half's frames of the squared residual from each frame's own scene estimate (None without photographs).
     #: Every photograph has its own texture, so the two halves' means have different noise floors.
     half_ms: np.ndarray | None = None
+    #: the readout's upper clip level when the data saturate below the full scale (a sensor's full well reached
+    #: before the converter's top: :func:`saturation_level`); None: the full scale
+    saturation: float | None = None
+
+    @property
+    def clip_level(self) -> float:
+        """The upper bound of the readout: a pixel that touched it is censored (:attr:`saturation` or the full
+        scale)."""
+        return self.full_scale if self.saturation is None else self.saturation
 
     def drift(self, r: int) -> LevelDrift:
         """Frame-to-frame level changes of repeated condition ``r`` (index into :attr:`repeated`)."""
@@ -564,12 +573,60 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
             g.index = renumber[g.index]
     full_scale = infer_full_scale(np.dtype(dtype), max(0.0, float(hi.max())))
     border = SCENE_SIZE // 2 if border is None else int(border)
+    interior = np.zeros(shp, bool)
+    interior[border:shp[0] - border, border:shp[1] - border] = True
+    saturation = saturation_level(lo, hi, interior, full_scale)
+    if saturation is not None:
+        notes.append(f"the frames saturate at {saturation:g} DN, below the full scale {full_scale:g} DN (a full well "
+                     "reached before the converter's top): readouts that reached it are censored")
     meas = Measurements(ds.root, shp, full_scale, border, epoch_times, has_time, groups, mean_all, var_all, lo, hi,
                         repeated, mean_a, mean_b, n_a, n_b, len(ds) - len(excluded), notes=notes,
-                        var_resid=var_resid, half_ms=half_ms, scene_all=scene_all)
+                        var_resid=var_resid, half_ms=half_ms, scene_all=scene_all, saturation=saturation)
     jpeg = any(Path(f.file).suffix.lower() in JPEG_SUFFIXES for f in ds.frames)
     meas.traits = NoiseTraits(lag.result(), blocks, jpeg)
     return meas
+
+
+#: A saturation atom: at least this share of one condition's interior pixels read the same value in every frame.
+SATURATION_SHARE = 0.01
+
+
+def saturation_level(lo: np.ndarray, hi: np.ndarray, interior: np.ndarray, full_scale: float) -> float | None:
+    """The readout value at which the data saturate below ``full_scale``, or None.
+
+    A sensor whose full well fills before its converter's top reads one value, up to the noise after the well,
+    wherever the light exceeds it (emva1288's camera at K = 0.1 DN/e⁻: 15,000 e⁻ read 1501 DN of 4095, a few
+    readouts at 1502): an atom at the top of the readouts.  Found per condition from every pixel's smallest and
+    largest readout over its frames (``lo``, ``hi``: conditions × H × W) as a value S that at least
+    :data:`SATURATION_SHARE` of the interior pixels read in every frame (``lo == S``), with hardly any pixel just
+    below it (``lo`` at S − 1 or S − 2: under a tenth as many — an atom, not the mode of a noisy level) and hardly
+    any above it (``hi`` > S + 2: under a tenth as many there, and under half a percent of all the readouts of the
+    data).  The highest such S is the bound, if the data reach well below it (the darkest condition's median
+    under (S − 10)/2: a quantised, low-noise dark frame is an atom too); without one (a few stuck pixels at one
+    value, a noisy flat's upper tail) the full scale stays the bound.
+    """
+    if lo.size == 0:
+        return None
+    lo_i = np.rint(lo[:, interior]).astype(np.int64)
+    hi_i = np.rint(hi[:, interior]).astype(np.int64)
+    n = int(interior.sum())
+    found = []
+    for low, high in zip(lo_i, hi_i):
+        values, counts = np.unique(low, return_counts=True)
+        top = int(np.argmax(counts))
+        for k in np.flatnonzero(counts >= SATURATION_SHARE * n):
+            level, c = int(values[k]), int(counts[k])
+            below = int(np.sum((low == level - 1) | (low == level - 2)))
+            above = int(np.sum(high > level + 2))
+            if below <= 0.1 * c and above <= 0.1 * c and k >= top:
+                found.append(level)
+    if not found:
+        return None
+    level = max(found)  # the top of the data (a quantised low-noise dark frame can be an atom too, far below)
+    floor = float(np.min(np.median(lo_i, axis=1)))  # the darkest condition's level
+    if level >= full_scale or level < 2.0 * floor + 10.0 or np.sum(hi_i > level + 2) > 0.005 * hi_i.size:
+        return None  # at the full scale anyway, no range of light below it, or readouts beyond it
+    return float(level)
 
 
 def _refuse_content_free(ds: Dataset, groups: list[Group], dropped: list[int], excluded: list[tuple[str, str]],

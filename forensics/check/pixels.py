@@ -382,7 +382,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
             spread.append(np.full(n_spread, np.nan))
     return VarianceBins(np.array([x[0] for x in rows], int), np.array([x[1] for x in rows]),
                         np.maximum(np.array([x[2] for x in rows]), 1e-12), np.array([x[3] for x in rows], float),
-                        np.array(spread).reshape(len(rows), n_spread), float(meas.full_scale), labels)
+                        np.array(spread).reshape(len(rows), n_spread), float(meas.clip_level), labels)
 
 
 #: Side of the scene estimate that measures a pattern's size: wide enough to leave almost all of a pattern

@@ -218,6 +218,22 @@ class BlackLevel(Effect):
     def free_params(self) -> list[str]:  # type: ignore[override]
         return [] if self.known else ["level"]
 
+    def fit(self, evidence: Any) -> "BlackLevel":
+        """The starting level: the darkest dark condition's median readout over the interior pixels (the checker's
+        bespoke start; the fit refines it).  Why: from 0 DN the checker's first look at the noise read every dark
+        pixel's level as signal and its variance as shot noise (read noise 0), and the pixel fit then predicted
+        the dark frames' censored readout with no noise (benchmarks/RESULTS_check.md, issue 27)."""
+        from forensics.io.dataset import is_dark_subject
+
+        if self.known:
+            return self
+        meas = evidence.meas
+        dark = [g.index for g in meas.groups if is_dark_subject(g.subject)]
+        if not dark:
+            return self
+        level = min(float(np.median(meas.mean_all[g][meas.interior])) for g in dark)
+        return replace(self, level=max(level, 0.0))
+
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         if self.level:
             signal += np.asarray(self.level, signal.dtype)

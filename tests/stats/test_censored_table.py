@@ -1,0 +1,62 @@
+"""The truncated readout mean from a checked table (forensics.stats.censored.tabulated_truncated_mean).
+
+The table replaces the exact sum over levels in the model check's predictions of dark frames near 0 DN; it must
+agree with the sum to far below what any fit resolves (10⁻⁶ DN: a pixel's mean over two frames has a noise of
+≈ 0.3 DN), and refuse where a spline cannot follow the mean (σ below 0.1 DN, where the mean is a staircase in μ)
+or where the exact sum is not what it would replace (σ ≥ 2 DN: a closed form already)."""
+import numpy as np
+
+from forensics.check.prediction import distinct_readout_means
+from forensics.stats.censored import TABLE_TOLERANCE, readout_moments, tabulated_truncated_mean
+
+
+def _dark_values(rng: np.random.Generator, n: int, sigma_lo: float, sigma_width: float, mu_lo: float, mu_hi: float):
+    return rng.uniform(mu_lo, mu_hi, n), sigma_lo + sigma_width * rng.uniform(0.0, 1.0, n)
+
+
+def test_table_matches_the_sum_on_dark_frames():
+    # the EMVA 1288 standard series' dark frames: black level ≈ 1 DN, σ ≈ 0.45–0.55 DN (dark current's shot
+    # noise spreads σ), DSNU and dark rates spread μ; every value is compared, not only the check sample
+    rng = np.random.default_rng(3)
+    for sigma_lo, width in ((0.45, 0.1), (0.2, 0.0), (0.8, 1.0)):
+        mu, sigma = _dark_values(rng, 60_000, sigma_lo, width, -0.5, 3.0)
+        table = tabulated_truncated_mean(mu, sigma, 0, 4095)
+        assert table is not None
+        exact = readout_moments(mu, sigma, 0, 4095, truncate=True)[0]
+        assert np.max(np.abs(table - exact)) < 0.1 * TABLE_TOLERANCE
+
+
+def test_table_refused_where_it_cannot_hold():
+    rng = np.random.default_rng(4)
+    mu, sigma = _dark_values(rng, 60_000, 0.02, 0.01, 0.0, 3.0)  # a staircase in μ
+    assert tabulated_truncated_mean(mu, sigma, 0, 4095) is None
+    mu, sigma = _dark_values(rng, 60_000, 1.0, 3.0, 0.0, 10.0)  # σ up to 4 DN: the closed form's domain
+    assert tabulated_truncated_mean(mu, sigma, 0, 4095) is None
+    mu, sigma = _dark_values(rng, 100, 0.5, 0.0, 0.0, 3.0)  # too few values to pay
+    assert tabulated_truncated_mean(mu, sigma, 0, 4095) is None
+
+
+def test_both_bounds_in_one_call():
+    # values near 0 and near the full scale together: one table per bound, each within the tolerance
+    rng = np.random.default_rng(5)
+    low = _dark_values(rng, 30_000, 0.4, 0.2, -0.5, 3.0)
+    high = _dark_values(rng, 30_000, 0.4, 0.2, 252.0, 256.0)
+    mu, sigma = np.concatenate([low[0], high[0]]), np.concatenate([low[1], high[1]])
+    exact = readout_moments(mu, sigma, 0, 255, truncate=True)[0]
+    assert np.max(np.abs(distinct_readout_means(mu, sigma, 255) - exact)) < TABLE_TOLERANCE
+
+
+def test_single_level_values_as_the_sum_gives_them():
+    # values whose nearest level holds all but Φ(−10) of their mass are filled without summing (a fitted shot-noise
+    # law leaves dark pixels at σ ≪ 0.1 DN): the same moments as the sum, truncated or not, near both bounds
+    from forensics.stats.censored import _summed_readout
+
+    rng = np.random.default_rng(6)
+    mu = rng.uniform(-3.0, 6.0, 50_000)
+    sigma = np.exp(rng.uniform(np.log(1e-3), np.log(0.4), mu.size))
+    for truncate in (True, False):
+        for hi, shift in ((4095, 0.0), (255, 250.0)):
+            fast = readout_moments(mu + shift, sigma, 0, hi, truncate=truncate)
+            summed = _summed_readout(mu + shift, sigma, 0, hi, truncate, 10.0)
+            np.testing.assert_allclose(fast[0], summed[0], rtol=0, atol=1e-12)
+            np.testing.assert_allclose(fast[1], summed[1], rtol=0, atol=1e-12)
