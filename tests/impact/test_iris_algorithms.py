@@ -8,7 +8,6 @@ Algorithm-specific properties from the published descriptions are in ``test_qsw.
 """
 from __future__ import annotations
 
-import importlib.util
 import pickle
 from pathlib import Path
 
@@ -22,30 +21,8 @@ from forensics.impact.matchers import compare_all, load_matcher, load_matchers
 from forensics.impact.qsw import QswMatcher
 from forensics.impact.segment import Segmenter
 
-
-def _eye_renderer():
-    """The synthetic eye of test_segment.py, loaded by path (works whatever pytest's import mode)."""
-    spec = importlib.util.spec_from_file_location("_impact_eye", Path(__file__).with_name("test_segment.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.render_eye
-
-
-render_eye = _eye_renderer()
-STEP = 2 * np.pi / 240
 ALGORITHMS = {"qsw": QswMatcher, "dct": DctMatcher, "cr": CrMatcher, "cb": CbMatcher}
 IITD = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "iitd-iris-001-040"
-
-
-@pytest.fixture(scope="module")
-def captures():
-    """Five eyes, two captures each: other noise, a 3-sample (4.5°) rotation and a 1-px move in between."""
-    out = {}
-    for eye in range(5):
-        for cap in range(2):
-            out[eye, cap] = render_eye(texture_seed=100 + eye, noise_seed=10 * eye + cap, rotation=3 * STEP * cap,
-                                       pupil=(158.0 + cap, 122.0 - cap, 38.0 + cap), iris=(160.0 + cap, 120.0, 100.0))
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -41,17 +41,6 @@ STEP = 2 * np.pi / 240          # one angular sample of Masek's 240-column textu
 
 
 @pytest.fixture(scope="module")
-def captures():
-    """Five eyes, two captures each: other noise, a 3-sample (4.5°) rotation and a 1-px move in between."""
-    out = {}
-    for eye in range(5):
-        for cap in range(2):
-            out[eye, cap] = render_eye(texture_seed=100 + eye, noise_seed=10 * eye + cap, rotation=3 * STEP * cap,
-                                       pupil=(158.0 + cap, 122.0 - cap, 38.0 + cap), iris=(160.0 + cap, 120.0, 100.0))
-    return out
-
-
-@pytest.fixture(scope="module")
 def templates(captures):
     seg = Segmenter()
     masek, ko = MasekMatcher(seg), KoMatcher(seg)
