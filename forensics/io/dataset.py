@@ -202,13 +202,20 @@ def nominal_temperature(frame: Frame) -> float | None:
     >>> nominal_temperature(Frame(Path("d.png"), "d.png", temperature_c=25.0, extra={"set_temperature_c": ""}))
     25.0
     """
-    setpoint = frame.get("set_temperature_c")
-    if setpoint not in (None, ""):
-        try:
-            return float(setpoint)
-        except (TypeError, ValueError):
-            pass  # a set point that is not a number is only a label; the measured value stands
-    return frame.temperature_c
+    setpoint = set_point(frame)
+    return frame.temperature_c if setpoint is None else setpoint
+
+
+def set_point(frame: Frame) -> float | None:
+    """The frame's temperature set point (``set_temperature_c``) in °C, or None where it has none or it is not a
+    number (then it is only a label, and the measured temperature stands)."""
+    value = frame.get("set_temperature_c")
+    if value in (None, ""):
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
 
 
 @dataclass

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from forensics.io.dataset import Dataset
+from forensics.io.dataset import Dataset, set_point
 from forensics.io.images import ImageInfo, is_raw, read_info, read_raw
 
 
@@ -57,8 +57,7 @@ def frame_types(ds: Dataset) -> list[dict[str, Any]]:
         kind = frame.get("frame_type")
         if not kind:
             continue
-        setpoint = frame.get("set_temperature_c")
-        groups.setdefault((kind, frame.exposure_s, None if setpoint in (None, "") else float(setpoint)), []).append(frame)
+        groups.setdefault((kind, frame.exposure_s, set_point(frame)), []).append(frame)
     rows = []
     for (kind, exposure, setpoint), frames in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][2] or 0.0,
                                                                                      kv[0][1] or 0.0)):
