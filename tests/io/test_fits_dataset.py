@@ -129,3 +129,16 @@ def test_a_header_that_contradicts_its_data_is_refused_in_one_line(tmp_path, cli
     (tmp_path / "dark.fits").unlink()
     code, _, err = cli("defects", "detect", str(tmp_path), "--workers", "1", "--quiet")
     assert code == 3 and "lying.fits" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_set_point_that_is_not_a_number_is_a_label(tmp_path):
+    """A manifest may write any text in an extra column: a set point like 'cooled' leaves the measured temperature
+    as the condition, and info's frame table lists it without a set point instead of failing."""
+    root = tmp_path / "ccd"
+    root.mkdir()
+    _hdu("Dark Frame", 60.0, -9.8, -10.0).writeto(root / "dark.fits")
+    (root / "manifest.csv").write_text("file,set_temperature_c\ndark.fits,cooled\n")
+    ds = open_dataset(root)
+    assert list(ds.conditions()) == [(60.0, None, pytest.approx(-9.8), DARK_SUBJECT)]
+    rows = summarize_dataset(ds).frame_types
+    assert [(r["frame_type"], r["set_temperature_c"], r["n"]) for r in rows] == [("dark", None, 1)]
