@@ -295,8 +295,28 @@ def _scores(matcher: Matcher, enrol: Sequence[Any], probe: Sequence[Any], i: np.
     for matchers without their own ``compare_all``."""
     if sampled and not hasattr(matcher, "compare_all"):
         return np.array([matcher.compare(enrol[a], probe[b]) for a, b in zip(i, j)], dtype=np.float64)
+    if not sampled:
+        return _upper_scores(matcher, enrol, probe)
     matrix = np.asarray(compare_all(matcher, enrol, probe), dtype=np.float64)
     return matrix[i, j]
+
+
+def _upper_scores(matcher: Matcher, enrol: Sequence[Any], probe: Sequence[Any], band: int | None = None) -> np.ndarray:
+    """Scores of every pair ``i < j`` (enrol[i], probe[j]), in :func:`numpy.triu_indices` order.
+
+    Only the upper triangle is computed, in bands of rows against the columns right of the band's first row
+    (about ``n / 32`` rows each: half the comparisons of the whole matrix, plus a sliver of ``n × band / 2``
+    below the diagonal).  Every score is a function of its two templates only, so each equals the full
+    matrix's (tested).
+    """
+    n = len(enrol)
+    band = band or max(32, -(-n // 32))
+    parts = []
+    for k in range(0, n - 1, band):
+        rows = list(enrol[k:min(k + band, n - 1)])
+        block = np.asarray(compare_all(matcher, rows, list(probe[k + 1:])), dtype=np.float64)
+        parts.extend(block[r, r:] for r in range(len(rows)))
+    return np.concatenate(parts) if parts else np.empty(0, dtype=np.float64)
 
 
 def _histogram(pairs: PairedScores, higher_is_similar: bool) -> dict[str, Any]:

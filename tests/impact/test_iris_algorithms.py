@@ -144,3 +144,18 @@ def test_real_eyes_encode_and_rank_genuine_pairs_higher(iitd_subset):
         g, imp = scores[genuine], scores[~genuine]
         auc = float((imp[None, :] > g[:, None]).mean() + 0.5 * (imp[None, :] == g[:, None]).mean())
         assert auc > 0.55, (matcher.name, auc)
+
+
+@pytest.mark.parametrize("name", list(ALGORITHMS))
+@pytest.mark.parametrize("band", [1, 3, None])
+def test_upper_triangle_scores_equal_the_full_matrix(templates, name, band):
+    # The experiment scores only the pairs i < j, in bands of rows (``_upper_scores``); each score must be the
+    # full matrix's, bit for bit, for a symmetric gallery (same-age) and for two different lists (enrol-0).
+    from forensics.impact.experiment import _upper_scores
+
+    matcher, t = templates[name]
+    codes = list(t.values())
+    for enrol, probe in ((codes, codes), (codes, codes[::-1])):
+        i, j = np.triu_indices(len(codes), 1)
+        full = compare_all(matcher, enrol, probe)[i, j]
+        assert np.array_equal(_upper_scores(matcher, enrol, probe, band), full)

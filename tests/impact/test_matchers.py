@@ -426,3 +426,15 @@ def test_bad_specs_say_what_is_accepted(tmp_path):
             load_matcher(spec)
     with pytest.raises(UsageError, match="unique.*masek"):
         load_matchers(["masek", "ko", "masek"])
+
+
+@pytest.mark.parametrize("name", ["masek", "ko"])
+def test_upper_triangle_scores_equal_the_full_matrix(templates, name):
+    # The experiment scores only the pairs i < j, in bands of rows; each must be the full matrix's exactly.
+    from forensics.impact.experiment import _upper_scores
+
+    matcher, t = templates[name]
+    codes = list(t.values())
+    i, j = np.triu_indices(len(codes), 1)
+    for enrol, probe in ((codes, codes), (codes, codes[::-1])):
+        assert np.array_equal(_upper_scores(matcher, enrol, probe, 3), compare_all(matcher, enrol, probe)[i, j])
