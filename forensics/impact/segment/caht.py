@@ -74,6 +74,7 @@ def segment_caht(
     eyelids: bool = True,
     lid_curvature: float = 0.5,
     lid_support: float = 0.3,
+    coarse: int = 6,
 ) -> Segmentation:
     """Segment an eye image with the CAHT-like method (see the module docstring).
 
@@ -94,6 +95,10 @@ def segment_caht(
         Smallest edge support (0–1) for a boundary to be trusted (``ok``).
     eyelids, lid_curvature, lid_support
         Look for the eyelid margins (:func:`~forensics.impact.segment.edges.find_eyelid`).
+    coarse
+        The limbus refinement's circle search (:func:`~forensics.impact.segment.boundary.polar_fit`):
+        coarse-to-fine from this many coarse circles, or exhaustive with 0 (about three times slower overall;
+        on the 400 shared IITD eyes one limbus of 400 differs, ``benchmarks/RESULTS_impact.md``).
 
     Returns
     -------
@@ -112,7 +117,7 @@ def segment_caht(
     pupil, p_support = find_pupil(filled, min_pupil)
     if pupil is None:
         return guess.failed("no dark, round pupil found")
-    iris, l_support = find_limbus(filled, pupil, center_range, iris_ratio, decentration)
+    iris, l_support = find_limbus(filled, pupil, center_range, iris_ratio, decentration, coarse=coarse)
     if iris is None:
         return Segmentation(pupil=pupil, iris=guess.iris, ok=False, quality=0.0, reason="no limbus edges",
                             method="caht")
@@ -223,7 +228,7 @@ def limbus_image(img: np.ndarray, pupil: Circle) -> np.ndarray:
 
 
 def find_limbus(img: np.ndarray, pupil: Circle, center_range: float = 1.3, iris_ratio: tuple[float, float] = (1.5, 8.0),
-                decentration: float = 0.1, n_candidates: int = 4) -> tuple[Circle | None, float]:
+                decentration: float = 0.1, n_candidates: int = 4, coarse: int = 6) -> tuple[Circle | None, float]:
     """The limbus circle and its edge support (0–1), or ``(None, 0)``; see the module docstring."""
     from skimage.feature import canny
 
@@ -274,7 +279,7 @@ def find_limbus(img: np.ndarray, pupil: Circle, center_range: float = 1.3, iris_
     best: tuple[float, Circle | None, float] = (-np.inf, None, 0.0)
     for x0, y0, r0 in starts:
         for dy in (0.0,):
-            circle, support = polar_fit(smooth_full, (x0, y0 + dy, r0), LIMBUS_ARCS)
+            circle, support = polar_fit(smooth_full, (x0, y0 + dy, r0), LIMBUS_ARCS, coarse=coarse)
             offset = math.hypot(circle[0] - xp, circle[1] - yp)
             if offset > center_range * rp or not iris_ratio[0] * rp <= circle[2] <= iris_ratio[1] * rp:
                 continue                                   # the refinement left CAHT's search ranges
