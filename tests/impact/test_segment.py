@@ -288,3 +288,20 @@ def test_segmenter_passes_its_parameters():
     assert circle_error(segment_iris(img).iris, IRIS) <= 3.0
     # reflection 0.5 × 255 masks everything brighter than 127: most of the iris's light half.
     assert mask.mean() < normalise(img, seg)[1].mean()
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (4.0, -3.0, 5.0), (-6.0, 5.0, -6.0)])
+def test_coarse_to_fine_circle_search_finds_the_exhaustive_optimum(offset):
+    # polar_fit's coarse-to-fine search scores every second centre and radius and then the full grid around
+    # the best coarse circles; on an eye whose limbus score has one clear peak it must land on exactly the
+    # circle the exhaustive search finds (the same bits: a circle's score does not depend on the grid it is
+    # scored in), from any start within the window.
+    from forensics.impact.segment.boundary import polar_fit
+    from forensics.impact.segment.caht import LIMBUS_ARCS
+
+    smooth = ndimage.gaussian_filter(render_eye(eyelid=None, spot=None).astype(np.float32) / 255, 1.0)
+    start = (IRIS[0] + offset[0], IRIS[1] + offset[1], IRIS[2] + offset[2])
+    fast = polar_fit(smooth, start, LIMBUS_ARCS)
+    full = polar_fit(smooth, start, LIMBUS_ARCS, coarse=0)
+    assert fast == full
+    assert circle_error(fast[0], IRIS) < 1.5
