@@ -304,19 +304,35 @@ def _scores(matcher: Matcher, enrol: Sequence[Any], probe: Sequence[Any], i: np.
 def _upper_scores(matcher: Matcher, enrol: Sequence[Any], probe: Sequence[Any], band: int | None = None) -> np.ndarray:
     """Scores of every pair ``i < j`` (enrol[i], probe[j]), in :func:`numpy.triu_indices` order.
 
-    Only the upper triangle is computed, in bands of rows against the columns right of the band's first row
-    (about ``n / 32`` rows each: half the comparisons of the whole matrix, plus a sliver of ``n × band / 2``
-    below the diagonal).  Every score is a function of its two templates only, so each equals the full
-    matrix's (tested).
+    Only the upper triangle is computed, in bands of ``band`` rows (:func:`upper_band`) against the columns
+    right of the band's first row: :func:`upper_entries` of the ``n²`` entries of the whole matrix.  Every
+    score is a function of its two templates only, so each equals the full matrix's (tested).
     """
     n = len(enrol)
-    band = band or max(32, -(-n // 32))
+    band = band or upper_band(n)
     parts = []
     for k in range(0, n - 1, band):
         rows = list(enrol[k:min(k + band, n - 1)])
         block = np.asarray(compare_all(matcher, rows, list(probe[k + 1:])), dtype=np.float64)
         parts.extend(block[r, r:] for r in range(len(rows)))
     return np.concatenate(parts) if parts else np.empty(0, dtype=np.float64)
+
+
+def upper_band(n: int) -> int:
+    """Rows per band of :func:`_upper_scores`: at least 256, at most 8 bands.
+
+    A matcher's ``compare_all`` prepares every column template once per call (the rotated codes: for ``dct``
+    75 shifted copies per template), so narrow bands repeat that preparation; 8 bands of ``n / 8`` rows
+    compute ``n² / 2 + n² / 16`` entries (56 % of the full matrix) and prepare each column at most 8 times.
+    """
+    return max(256, -(-n // 8))
+
+
+def upper_entries(n: int, band: int | None = None) -> int:
+    """Matrix entries :func:`_upper_scores` computes for ``n`` templates (``n (n − 1) / 2`` plus the bands'
+    slivers below the diagonal)."""
+    band = band or upper_band(n)
+    return sum(min(band, n - 1 - k) * (n - 1 - k) for k in range(0, n - 1, band))
 
 
 def _histogram(pairs: PairedScores, higher_is_similar: bool) -> dict[str, Any]:
