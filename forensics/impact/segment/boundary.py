@@ -146,7 +146,7 @@ def _grid_argmax(score, g: np.ndarray, radii: np.ndarray, coarse: int) -> tuple[
     steps of the ``coarse`` best coarse circles: every circle of the grid lies within one step of a coarse one,
     so the result is the exhaustive search's whenever its maximum lies next to one of the ``coarse`` best coarse
     circles — the score is smooth on that scale (a Gaussian derivative of 1 px, circles 0.5–1 px apart), which
-    ``benchmarks/bench_segmentation.py --compare`` measures on the real eyes.
+    ``benchmarks/bench_segmentation.py --exhaustive`` measures on the real eyes.
     """
     if coarse <= 0:
         dxs, dys = (a.ravel() for a in np.meshgrid(g, g))
