@@ -35,7 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--marks", default=str(ROOT / "tests" / "impact" / "data" / "iitd_marks.csv"))
     ap.add_argument("--method", action="append", choices=sorted(SEGMENTATIONS))
     ap.add_argument("--report", metavar="DIR")
-    ap.add_argument("--exhaustive", action="store_true", help="compare caht's coarse-to-fine search with the exhaustive one")
+    ap.add_argument("--exhaustive", action="store_true",
+                    help="compare caht's coarse-to-fine search with the exhaustive one")
     ap.add_argument("--all", action="store_true", help="with --exhaustive: every image of --data")
     args = ap.parse_args(argv)
     marks = read_marks(args.marks)

@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.report:
         from forensics.report.impact import impact_report
 
-        print(f"report: {impact_report(result, 'Figure 6 on IITD 001-040 (merged runs)').write(args.report, force=True)}")
+        page = impact_report(result, "Figure 6 on IITD 001-040 (merged runs)").write(args.report, force=True)
+        print(f"report: {page}")
     return 0
 
 
