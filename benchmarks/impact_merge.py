@@ -9,9 +9,12 @@ device and frame noise come from its own keyed stream (``keyed_generator(seed, 1
 resamples from ``keyed_generator(seed, 2)``, so a sensor's units do not depend on which other sensors a run
 had: units of ``--sensors A,…`` and ``--sensors G,H`` runs merge into exactly what one ``--sensors A,G,H`` run
 gives, and the trends and spreads are recomputed from the merged units (``experiment.trends``/``spreads``).
-A sensor is taken when all its ages are present; a missing age-0 item of a sensor whose other ages are there
-is the run's reuse of the first sensor's age 0 (age 0 of a noiseless sensor is the source image).  Sensors
-with missing items are left out and named.
+A run's reused (sensor, age) tasks have no item of their own (their aged images are byte for byte those of an
+earlier task).  Give the run's ``--json`` output after the folder (``CKPT:RUN.json``) and each missing item is
+taken from the one stored item whose units have exactly the run's EERs and intervals for that (sensor, age),
+every matcher and protocol (refused when none or several match); without it only a missing age 0 is filled,
+from the run's first age-0 item (age 0 of a noiseless sensor is the source image).  Sensors with items still
+missing are left out and named.
 """
 from __future__ import annotations
 
@@ -20,16 +23,46 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 from forensics._shared import safecodec
 from forensics._shared.atomic import write_bytes
-from forensics.impact.experiment import ImpactResult, _classes, spreads, trends
+from forensics.impact.experiment import ImpactResult, _classes, _digest_task, parse_sensors, spreads, trends
 from forensics.io.dataset import open_dataset
+from forensics.sensor.simulate import source_bit_depth
 
 
-def merge(folders: list[Path]) -> ImpactResult:
+def _fingerprint(units) -> list:
+    return sorted((u.matcher, u.protocol, u.eer.estimate, tuple(u.eer.ci)) for u in units)
+
+
+def _digest(config: dict, s_index: int, a_index: int) -> bytes:
+    """The run's digest of the aged images of one (sensor, age) (``experiment._digest_task``)."""
+    frames = open_dataset(config["source"]).frames
+    first = frames[0].load()
+    job = SimpleNamespace(sensors=parse_sensors(",".join(config["sensors"]), first.shape[:2], source_bit_depth(first.dtype)),
+                          ages=config["ages"], root=config["seed"], paths=[str(f.path) for f in frames],
+                          dtype=first.dtype.str, shape=first.shape)
+    return _digest_task(job, (s_index, a_index))
+
+
+def _stand_in(folder: Path, config: dict, run: dict, s_index: int, a_index: int) -> Path:
+    """The stored item of a reused (sensor, age): equal units in the run's output and equal aged images."""
+    sensor, age = config["sensors"][s_index], config["ages"][a_index]
+    want = sorted((u["matcher"], u["protocol"], u["eer"], tuple(u["ci"])) for u in run["units"]
+                  if u["sensor"] == sensor and u["age"] == age)
+    hits = [p for p in sorted(folder.glob("item-*.npz")) if _fingerprint(safecodec.decode(p)["units"]) == want]
+    if len(hits) > 1:  # equal EERs by coincidence: the aged images decide
+        mine = _digest(config, s_index, a_index)
+        hits = [p for p in hits if _digest(config, int(p.stem[11:13]), int(p.stem[-3:])) == mine]
+    if len(hits) != 1:
+        raise SystemExit(f"{folder}: {len(hits)} stored items match sensor {sensor} at {age:g} years; expected one")
+    return hits[0]
+
+
+def merge(folders: list[Path], runs: list[dict | None]) -> ImpactResult:
     units, sensors, config = [], [], None
-    for folder in folders:
+    for folder, run in zip(folders, runs):
         c = json.loads((folder / "config.json").read_text())
         c = c.get("config", c)
         if config is not None and any(c[k] != config[k] for k in ("ages", "matchers", "protocols", "seed", "files")):
@@ -38,6 +71,11 @@ def merge(folders: list[Path]) -> ImpactResult:
         ages = c["ages"]
         for s_index, name in enumerate(c["sensors"]):
             paths = [folder / f"item-sensor{s_index:02d}-age{a:03d}.npz" for a in range(len(ages))]
+            if run is not None and name in run["sensors"]:
+                for a_index, path in enumerate(paths):
+                    if not path.exists():
+                        paths[a_index] = _stand_in(folder, c, run, s_index, a_index)
+                        print(f"{folder}: sensor {name} at {ages[a_index]:g} years is {paths[a_index].name} (reused)")
             if not paths[0].exists() and all(p.exists() for p in paths[1:]):
                 zero = sorted(folder.glob("item-sensor*-age000.npz"))
                 if zero:
@@ -64,11 +102,16 @@ def merge(folders: list[Path]) -> ImpactResult:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("checkpoints", nargs="+", type=Path)
+    ap.add_argument("checkpoints", nargs="+", help="checkpoint folders, each optionally :RUN.json")
     ap.add_argument("out", type=Path)
     ap.add_argument("--report", type=Path)
     args = ap.parse_args(argv)
-    result = merge(args.checkpoints)
+    folders, runs = [], []
+    for spec in args.checkpoints:
+        folder, _, run = spec.partition(":")
+        folders.append(Path(folder))
+        runs.append(json.loads(Path(run).read_text()) if run else None)
+    result = merge(folders, runs)
     write_bytes(args.out, json.dumps(result.to_dict(), indent=1).encode(), force=True)
     print(f"merged sensors {', '.join(result.sensors)}: {len(result.units)} units -> {args.out}")
     if args.report:
