@@ -349,6 +349,12 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
     lower = np.array([effects[i].bounds(n)[0] for i, n in glob])
     upper = np.array([effects[i].bounds(n)[1] for i, n in glob])
     step = bounded_step(H, g, np.array(old, float), lower, upper)
+    move = float(step @ H @ step)  # the step's length², in standard errors (H is the profiled information)
+    if not move >= NEGLIGIBLE_MOVE:
+        # every parameter on a bound or uninformative (step 0), or a move of under 1 % of a standard error: a
+        # trial could gain nothing the data can tell, and its pattern refit may raise χ² by rounding — whereupon
+        # 8 halvings of a null step were tried (12 of 18 trials of the hidden prnu dataset's --auto)
+        return effects, H, cross
     old_vals = [p.values.copy() for _, p in pats]
     chi_old = float(np.sum(w * r * r))
 
@@ -367,6 +373,8 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
 
     fraction = 1.0
     for _ in range(8):
+        if fraction**2 * move < NEGLIGIBLE_MOVE:
+            break  # what is left of the step moves the parameters by under 1 % of their standard errors
         trial, chi_new = evaluate(fraction)
         if chi_new <= chi_old:
             # the fall the linearised model predicts: χ²(f) = χ²(0) − 2f·g·s + f²·s·H·s
@@ -380,6 +388,9 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
     return effects, H, cross
 
 
+#: A global step (or what halving leaves of it) whose length², in standard errors (s·H·s), is below this — a
+#: move of under 1 % of a standard error — is not tried: the parameters stay.
+NEGLIGIBLE_MOVE = 1e-4
 #: A global step whose χ² fell within this fraction of what the linearised model predicts is taken as it is;
 #: otherwise the curvature along it is measured (:func:`_line_minimum`).
 LINEAR_ENOUGH = 0.2
