@@ -315,13 +315,13 @@ def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: Fram
 
 
 def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_effects: Sequence[Effect],
-               out: np.ndarray, electronic: np.ndarray | None = None, iterations: int = 50) -> None:
+               out: np.ndarray, electronic: np.ndarray | None = None, iterations: int = 60) -> None:
     """Predict ``out[idx]`` for the bins near a bound (those with a ``spread``; see
     :func:`~forensics.check.pixels.variance_bins`) from the quantised, clipped readout.
 
     Each scene level of the bin's spread (a leave-one-out mean of the neighbours' readouts, so the mean of the
-    readout y = rint(clip(x, 0, full scale)) of a pixel there) gives the latent mean μ, found by bisection
-    with the noise σ(μ) of the noise effects; the bin's usable pixels never touched a bound, so its
+    readout y = rint(clip(x, 0, full scale)) of a pixel there) gives the latent mean μ, found by
+    :func:`bracketed_root` with the noise σ(μ) of the noise effects; the bin's usable pixels never touched a bound, so its
     prediction is the average of the readout variance at those μ conditional on 0 < y < full scale.  The
     rounding variance is thus exact: 1/12 away from the bounds, less where mass sits on a bound.
     """
@@ -333,13 +333,52 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
     m = spread[near]
     elec = (np.zeros(len(idx)) if electronic is None else np.asarray(electronic, float))[near][:, None]
     s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx, elec) + QUANT_VAR)
-    a, b = m - 10.0 * s - 2.0, m + 10.0 * s + 2.0
-    for _ in range(iterations):
-        mid = 0.5 * (a + b)
-        mean, _ = readout_moments(mid, np.sqrt(noise_variance(noise_effects, mid, ctx, elec)), lo, hi)
-        below = mean < m
-        a = np.where(below, mid, a)
-        b = np.where(below, b, mid)
-    mu = 0.5 * (a + b)
+    flat_m, flat_elec = m.ravel(), np.broadcast_to(elec, m.shape).ravel()
+
+    def excess(x: np.ndarray, at: np.ndarray) -> np.ndarray:
+        mean, _ = readout_moments(x, np.sqrt(noise_variance(noise_effects, x, ctx, flat_elec[at])), lo, hi)
+        return mean - flat_m[at]
+
+    mu = bracketed_root(excess, (m - 10.0 * s - 2.0).ravel(), (m + 10.0 * s + 2.0).ravel(), iterations).reshape(m.shape)
     _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx, elec)), lo, hi, truncate=True)
     out[idx[near]] = var.mean(axis=1)
+
+
+def bracketed_root(f, a: np.ndarray, b: np.ndarray, iterations: int = 60, xtol: float = 1e-12) -> np.ndarray:
+    """The roots of an increasing ``f`` within the brackets ``f(a) < 0 < f(b)`` (1-D arrays): regula falsi with
+    the Illinois modification, every third step a bisection, each value iterated only until its own bracket is
+    narrower than ``xtol``·(1 + |x|) (or its excess is exactly 0).  ``f(x, at)`` evaluates the values ``at``.
+
+    Why not plain bisection: each evaluation is one :func:`~forensics.stats.censored.readout_moments` over
+    every value, and bisection needed 50 of them to reach the bracket's rounding (an interval of 20σ + 4 DN
+    halved to 10⁻¹⁴).  The bracket holds, so this is as safe as bisection; most values converge superlinearly
+    in ≈ 8 evaluations, and only the slow ones (a nearly quantised readout, σ ≪ 1 DN, whose mean is a
+    staircase) are evaluated further.  The roots agree with the bisection's to ≈ 10⁻¹² DN (test)."""
+    a, b = np.array(a, float), np.array(b, float)
+    every = np.arange(a.size)
+    fa, fb = f(a, every), f(b, every)
+    active = every
+    for k in range(iterations):
+        aa, bb, ffa, ffb = a[active], b[active], fa[active], fb[active]
+        mid = 0.5 * (aa + bb)
+        if k % 3 == 2:
+            x = mid
+        else:
+            den = ffb - ffa
+            x = np.where(den > 0, bb - ffb * (bb - aa) / np.where(den > 0, den, 1.0), mid)
+            x = np.where((x > aa) & (x < bb), x, mid)
+        fx = f(x, active)
+        right, left = fx > 0, fx < 0  # the root is left of x (x becomes b) or right of it (x becomes a)
+        if k % 3 != 2:  # Illinois: the end that stays has its value halved, so that it moves next time
+            ffa = np.where(right, 0.5 * ffa, ffa)
+            ffb = np.where(left, 0.5 * ffb, ffb)
+        exact = ~(right | left)
+        a[active] = np.where(left | exact, x, aa)
+        b[active] = np.where(right | exact, x, bb)
+        fa[active] = np.where(left, fx, ffa)
+        fb[active] = np.where(right, fx, ffb)
+        width = b[active] - a[active]
+        active = active[width > xtol * (1.0 + np.abs(x))]
+        if active.size == 0:
+            break
+    return 0.5 * (a + b)
