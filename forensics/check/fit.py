@@ -159,8 +159,9 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     mu_b = ev.predictor.predict(device, pixels, "b")
     sims, spatial_null = {}, None
     if arrivals and len(ev.times) >= 2:
-        sims, spatial_null = ev.defects.simulate_null(arrivals, expected, ev.streams.stream(NULL_SIMULATIONS),
-                                                      ev.streams.n_sim)
+        sims, spatial_null = ev.simulations(
+            NULL_SIMULATIONS, arrivals,
+            lambda: ev.defects.simulate_null(arrivals, expected, ev.streams.stream(NULL_SIMULATIONS), ev.streams.n_sim))
     return FittedModel(device, effects, pixels, pix.mu_a, mu_b, pix.nuisance, projector, params, patterns, expected,
                        arrival_free, growth_jac, vpred, vjac, spatial_null, sims,
                        estimation_variance(pix.local, pix.nuisance, pix.local_var, patterns, effects))

@@ -139,9 +139,13 @@ class SignatureContext(EffectQuestions):
             x = (increments(dataclasses.replace(probe, **{name: value + delta})) - base) / delta
             sigs.append(Signature("growth", f"{effect.key}.{name}", x))
         if len(counts.sites) >= 10 and fitted.spatial_null is not None:
-            rng = self.ev.streams.stream(ARRIVAL_SIGNATURES)
             n_sim = self.ev.streams.n_sim
-            ls = np.array([counts.ripley_l(counts.simulate([*arrivals, strong], rng)[1]) for _ in range(n_sim)])
+
+            def simulate() -> np.ndarray:
+                rng = self.ev.streams.stream(ARRIVAL_SIGNATURES)
+                return np.array([counts.ripley_l(counts.simulate([*arrivals, strong], rng)[1]) for _ in range(n_sim)])
+
+            ls = self.ev.simulations(ARRIVAL_SIGNATURES, [*arrivals, strong], simulate)
             m0, s0 = fitted.spatial_null["mean"], fitted.spatial_null["sd"]
             direction = (np.nanmean(ls, 0) - m0) / s0
             noise = np.sqrt(1.0 / n_sim + 1.0 / n_sim)
