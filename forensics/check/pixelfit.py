@@ -138,11 +138,18 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     def predict(dev: Device, clip: bool = True) -> np.ndarray:
         return ev.predictor.predict(dev, pixels, "a", clip)
 
+    latest: dict[str, np.ndarray] = {}  # the last consistent prediction's unclipped values
+
     def consistent(dev: Device) -> np.ndarray:
-        """The prediction with the neighbours' pattern term of ``dev``'s current patterns."""
+        """The prediction with the neighbours' pattern term of ``dev``'s current patterns.  Its unclipped values
+        are kept (``latest``): every change of the patterns or parameters before a global step and at the end of
+        a cycle is followed by this call, so they are the current state's — one full prediction less at the
+        start of every cycle, after the last and in every global step."""
         if pats:
             dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
-        return predict(dev)
+        raw = predict(dev, clip=False)
+        latest["raw"] = raw
+        return ev.predictor.censor(dev, raw)
 
     coupling: tuple[list[np.ndarray], np.ndarray] | None = None  # (Z, F) of the cycle, see coupled_step
 
@@ -174,10 +181,11 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     for cycle in range(max_cycles):
         if has_unscored and not settled:
             wp[...] = pixels.pattern_weight
-        if pats:  # the neighbours' additive patterns in the scene estimates, frozen for this cycle
-            dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
-        raw = predict(dev, clip=False)  # derivatives ignore the clipping (clipped values are censored)
-        mu = ev.predictor.censor(dev, raw)  # residuals: what the data show near 0 and full scale
+        # the neighbours' additive patterns in the scene estimates, frozen for this cycle; derivatives ignore
+        # the clipping (clipped values are censored); residuals: what the data show near 0 and full scale
+        # (after the first cycle, the end of the last one computed them for the current state)
+        mu = consistent(dev) if cycle == 0 else mu
+        raw = latest["raw"]
         # -- pixel-local patterns, jointly per pixel
         refill = ev.predictor.refill(dev, pixels) if local and pixels.defect_mask.any() else None
         X_local = [pattern_derivative(predict, dev, p, raw, refill) for _, p in local]
@@ -199,7 +207,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         # -- global parameters: profiled Gauss–Newton with step halving
         if glob:
             effects, H, cross = _global_step(predict, consistent, refit_local, device, effects, glob, pats, local,
-                                             X_local, y, w, mu, centred, coupling, wp)
+                                             X_local, y, w, mu, centred, coupling, wp, latest["raw"])
             dev = on_device(device, effects)
         mu = consistent(dev)  # χ² of the patterns' own neighbour term: the objective every step decreases
         chi = float(np.sum(w * (y - mu) ** 2))
@@ -208,10 +216,9 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             break
         settled = settled or (np.isfinite(chi_prev) and abs(chi_prev - chi) <= 1e-3 * max(chi, 1.0))
         chi_prev = chi
-    if pats:
-        dev.state[SCENE_SHIFT] = ev.predictor.scene_shift(dev, pixels)
-    raw = predict(dev, clip=False)
-    mu = ev.predictor.censor(dev, raw)
+    if not latest:
+        mu = consistent(dev)
+    raw = latest["raw"]  # the last cycle ended with the consistent prediction of the state it leaves
     if local:
         refill = ev.predictor.refill(dev, pixels) if pixels.defect_mask.any() else None
         X_local = [pattern_derivative(predict, dev, p, raw, refill) for _, p in local]
@@ -310,7 +317,8 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
                  X_local: list[np.ndarray], y: np.ndarray,
                  w: np.ndarray, mu: np.ndarray, centred: list[bool],
                  coupling: tuple[list[np.ndarray], np.ndarray] | None = None,
-                 wp: np.ndarray | None = None) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
+                 wp: np.ndarray | None = None,
+                 raw: np.ndarray | None = None) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
     """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
     does not increase (at most 8 times; else the old values stay).  χ² is that of the consistent prediction
     (``consistent``: the neighbours' pattern term of the trial's own patterns), so every accepted step lowers the
@@ -318,10 +326,10 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
     matrix (for standard errors) and the parameters' cross information with the random-effect patterns'
     common modes (None without such patterns).  ``coupling``: the cycle's (Z, F) when the patterns are solved
     jointly (:func:`_coupling`): the parameters are then profiled against that joint solve (with the pattern
-    weights ``wp``), else pixel by pixel."""
+    weights ``wp``), else pixel by pixel.  ``raw``: the unclipped prediction of the current state, if known."""
     dev = on_device(device, effects)
     r = y - mu
-    raw = predict(dev, clip=False)
+    raw = predict(dev, clip=False) if raw is None else raw
     proj = PixelProjector([c * np.sqrt(w) for c in X_local], centred)
     J = []
     for i, n in glob:
