@@ -151,7 +151,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         latest["raw"] = raw
         return ev.predictor.censor(dev, raw)
 
-    coupling: tuple[list[np.ndarray], np.ndarray] | None = None  # (Z, F) of the cycle, see coupled_step
+    coupling: tuple[list[np.ndarray], np.ndarray, dict] | None = None  # (Z, F, cache) of the cycle: coupled_step
 
     def refit_local(dev: Device, X_local: list[np.ndarray], mu: np.ndarray) -> np.ndarray:
         """One Gauss–Newton step of the pixel-local patterns from the consistent prediction ``mu``: jointly
@@ -233,7 +233,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
 
 
 def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, raw: np.ndarray,
-              refill: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray]:
+              refill: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
     """The derivatives that couple the pixels through their neighbours' scene estimates
     (:func:`~forensics.check.coupled.coupled_step`): per pixel-local pattern Z, how a pixel's own values move
     what it subtracts from its neighbours' estimates — its deviation at zero light (the neighbour term), less,
@@ -261,15 +261,16 @@ def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, r
     dev.state[SCENE_SHIFT] = shift + h * light
     F = (predict(dev, clip=False) - raw) / h * light
     dev.state[SCENE_SHIFT] = shift
-    return Z, F
+    return Z, F, {}  # and the cycle's cache of the coupled solve's preconditioner
 
 
 def _coupled_refit(consistent, dev: Device, local: list, X_local: list[np.ndarray], Z: list[np.ndarray],
-                   F: np.ndarray, wp: np.ndarray, y: np.ndarray, mu: np.ndarray, centred: list[bool]) -> np.ndarray:
+                   F: np.ndarray, cache: dict, wp: np.ndarray, y: np.ndarray, mu: np.ndarray,
+                   centred: list[bool]) -> np.ndarray:
     """One joint Gauss–Newton step of the pixel-local patterns with their neighbours' scene term
     (:func:`~forensics.check.coupled.coupled_step`) from the consistent prediction ``mu``, halved (at most 4
     times) until χ² does not increase (else the patterns stay); returns the consistent prediction."""
-    step = coupled_step(X_local, Z, F, wp, y - mu, centred)
+    step = coupled_step(X_local, Z, F, wp, y - mu, centred, cache=cache)
     chi_old = float(np.sum(wp * (y - mu) ** 2))
     saved = [p.values.copy() for _, p in local]
     fraction = 1.0
@@ -316,7 +317,7 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
                  glob: list[tuple[int, str]], pats: list[tuple[int, Pattern]], local: list,
                  X_local: list[np.ndarray], y: np.ndarray,
                  w: np.ndarray, mu: np.ndarray, centred: list[bool],
-                 coupling: tuple[list[np.ndarray], np.ndarray] | None = None,
+                 coupling: tuple[list[np.ndarray], np.ndarray, dict] | None = None,
                  wp: np.ndarray | None = None,
                  raw: np.ndarray | None = None) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
     """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
@@ -341,8 +342,8 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         moved = on_device(device, with_param(effects, i, n, v + d))
         column = (predict(moved, clip=False) - raw) / d
         if coupling is not None:  # profiled against the joint pattern solve, neighbours' term included
-            Z, F = coupling
-            delta = coupled_step(X_local, Z, F, wp, column, centred).delta
+            Z, F, cache = coupling
+            delta = coupled_step(X_local, Z, F, wp, column, centred, cache=cache).delta
             J.append((column - coupled_forward(X_local, Z, F, delta)) * np.sqrt(w))
         else:
             J.append(proj.project(column * np.sqrt(w)))
