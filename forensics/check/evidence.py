@@ -16,6 +16,8 @@ It satisfies :class:`forensics.sensor.evidence.Evidence`, the protocol effects' 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +29,7 @@ from forensics.check.pixels import PixelData, pixel_data
 from forensics.check.prediction import Predictor
 from forensics.check.streams import Streams
 from forensics.sensor.catalogue import DefectCatalogue
-from forensics.sensor.model import Device
+from forensics.sensor.model import Device, Effect
 
 #: z of the look-back that dates the pixel classes' onsets.
 CLASS_LOOK_BACK_Z = 3.0
@@ -92,6 +94,24 @@ class Evidence(EffectQuestions):
         self.usable = meas.interior[None] & ~self.censored
         self.predictor = Predictor(meas, self.rgroups)
         self._initial_pixels: PixelData | None = None
+        self._simulations: dict[Any, Any] = {}
+
+    # ------------------------------------------------------------------ arrival simulations
+    def simulations(self, stream: int, effects: Sequence[Effect], simulate: Callable[[], Any]) -> Any:
+        """``simulate()``'s result, computed once per Monte-Carlo ``stream`` and arrival ``effects`` (their values).
+
+        Why: the arrival effects are fitted to the defect counts alone, so every model of a ``--auto`` path has
+        the same fitted arrivals, and their null simulations and the arrival candidates' simulated signatures
+        (:attr:`streams`: a fresh, identical generator per stream at every call) are the same numbers — ≈ 10 % of
+        the hidden-effect check, once per model.  Unhashable parameter values: not kept."""
+        try:
+            key = (stream, tuple((e.key, tuple(sorted(e.params().items()))) for e in effects))
+            hash(key)
+        except TypeError:
+            return simulate()
+        if key not in self._simulations:
+            self._simulations[key] = simulate()
+        return self._simulations[key]
 
     # ------------------------------------------------------------------ pixel data
     def pixels(self, catalogue: DefectCatalogue | None = None) -> PixelData:

@@ -96,12 +96,36 @@ class Predictor:
         self.dark = dark_groups(self.rgroups)
         self.dark_all = dark_groups(meas.groups)
         self._chain_cache: dict[Any, Any] = {}
+        self._model_key: tuple[Any, Any] = (None, None)
+        self._scatter_targets: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def _chain_key(self, typical: Device) -> Any:
+        """The chain's parameter values, as a key; computed once per model object (a prediction asks for every
+        condition's table of one model: building the key per condition was ≈ 4 % of the hidden-effect check).
+        An effect never changes once built (a fit makes new ones), so the effect objects stand for their values."""
+        effects = typical.model.effects
+        held, key = self._model_key
+        if held is None or len(held) != len(effects) or any(a is not b for a, b in zip(held, effects)):
+            key = tuple((e.key, tuple(sorted(e.params().items()))) for e in effects
+                        if e.stage not in (Stage.ARRIVAL, Stage.NOISE))
+            self._model_key = (list(effects), key)
+        return key
+
+    def _targets(self, dst: np.ndarray) -> np.ndarray:
+        """The sorted distinct targets of a refill scatter (where its correction can be non-zero), once per
+        scatter: with the refill's subtraction at the defects only, 38 → 33 ms a prediction on the hidden prnu
+        dataset (bit-identical)."""
+        held = self._scatter_targets.get(id(dst))
+        if held is None or held[0] is not dst:
+            seen = np.zeros(int(np.prod(self.shape)), bool)
+            seen[dst] = True
+            held = (dst, np.flatnonzero(seen))
+            self._scatter_targets[id(dst)] = held
+        return held[1]
 
     def table(self, typical: Device, tctx: FrameContext) -> ChainInverse | None:
         """The typical chain's inverse (:class:`ChainInverse`); None where the chain is the identity."""
-        key = (tuple((e.key, tuple(sorted(e.params().items()))) for e in typical.model.effects
-                     if e.stage not in (Stage.ARRIVAL, Stage.NOISE)),
-               tctx.time, tctx.exposure_s, tctx.iso, tctx.temperature_c)
+        key = (self._chain_key(typical), tctx.time, tctx.exposure_s, tctx.iso, tctx.temperature_c)
         cache = self._chain_cache
         if key not in cache:
             if len(cache) > 4096:
@@ -221,9 +245,11 @@ class Predictor:
                     typical_reading = means[r] - deviation
                 if record is not None:
                     record[r] = np.where(pixels.defect_mask[r], typical_reading, 0.0)
-                refill = (typical_reading - fills[r]).ravel()[src]
+                # at the defects only: the same numbers as over the frame and then indexed
+                refill = typical_reading.ravel()[src] - fills[r].ravel()[src]
                 correction = np.bincount(dst, wts * refill, minlength=h * w)
-                touched = np.flatnonzero(correction)
+                reach = self._targets(dst)
+                touched = reach[correction[reach] != 0]  # np.flatnonzero(correction) without the frame's scan
                 light = light.copy().ravel()
                 scene = scenes[r].ravel()[touched] + correction[touched]
                 if shift is not None:
@@ -315,13 +341,13 @@ def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: Fram
 
 
 def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_effects: Sequence[Effect],
-               out: np.ndarray, electronic: np.ndarray | None = None, iterations: int = 50) -> None:
+               out: np.ndarray, electronic: np.ndarray | None = None, iterations: int = 60) -> None:
     """Predict ``out[idx]`` for the bins near a bound (those with a ``spread``; see
     :func:`~forensics.check.pixels.variance_bins`) from the quantised, clipped readout.
 
     Each scene level of the bin's spread (a leave-one-out mean of the neighbours' readouts, so the mean of the
-    readout y = rint(clip(x, 0, full scale)) of a pixel there) gives the latent mean μ, found by bisection
-    with the noise σ(μ) of the noise effects; the bin's usable pixels never touched a bound, so its
+    readout y = rint(clip(x, 0, full scale)) of a pixel there) gives the latent mean μ, found by
+    :func:`bracketed_root` with the noise σ(μ) of the noise effects; the bin's usable pixels never touched a bound, so its
     prediction is the average of the readout variance at those μ conditional on 0 < y < full scale.  The
     rounding variance is thus exact: 1/12 away from the bounds, less where mass sits on a bound.
     """
@@ -333,13 +359,52 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
     m = spread[near]
     elec = (np.zeros(len(idx)) if electronic is None else np.asarray(electronic, float))[near][:, None]
     s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx, elec) + QUANT_VAR)
-    a, b = m - 10.0 * s - 2.0, m + 10.0 * s + 2.0
-    for _ in range(iterations):
-        mid = 0.5 * (a + b)
-        mean, _ = readout_moments(mid, np.sqrt(noise_variance(noise_effects, mid, ctx, elec)), lo, hi)
-        below = mean < m
-        a = np.where(below, mid, a)
-        b = np.where(below, b, mid)
-    mu = 0.5 * (a + b)
+    flat_m, flat_elec = m.ravel(), np.broadcast_to(elec, m.shape).ravel()
+
+    def excess(x: np.ndarray, at: np.ndarray) -> np.ndarray:
+        mean, _ = readout_moments(x, np.sqrt(noise_variance(noise_effects, x, ctx, flat_elec[at])), lo, hi)
+        return mean - flat_m[at]
+
+    mu = bracketed_root(excess, (m - 10.0 * s - 2.0).ravel(), (m + 10.0 * s + 2.0).ravel(), iterations).reshape(m.shape)
     _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx, elec)), lo, hi, truncate=True)
     out[idx[near]] = var.mean(axis=1)
+
+
+def bracketed_root(f, a: np.ndarray, b: np.ndarray, iterations: int = 60, xtol: float = 1e-12) -> np.ndarray:
+    """The roots of an increasing ``f`` within the brackets ``f(a) < 0 < f(b)`` (1-D arrays): regula falsi with
+    the Illinois modification, every third step a bisection, each value iterated only until its own bracket is
+    narrower than ``xtol``·(1 + |x|) (or its excess is exactly 0).  ``f(x, at)`` evaluates the values ``at``.
+
+    Why not plain bisection: each evaluation is one :func:`~forensics.stats.censored.readout_moments` over
+    every value, and bisection needed 50 of them to reach the bracket's rounding (an interval of 20σ + 4 DN
+    halved to 10⁻¹⁴).  The bracket holds, so this is as safe as bisection; most values converge superlinearly
+    in ≈ 8 evaluations, and only the slow ones (a nearly quantised readout, σ ≪ 1 DN, whose mean is a
+    staircase) are evaluated further.  The roots agree with the bisection's to ≈ 10⁻¹² DN (test)."""
+    a, b = np.array(a, float), np.array(b, float)
+    every = np.arange(a.size)
+    fa, fb = f(a, every), f(b, every)
+    active = every
+    for k in range(iterations):
+        aa, bb, ffa, ffb = a[active], b[active], fa[active], fb[active]
+        mid = 0.5 * (aa + bb)
+        if k % 3 == 2:
+            x = mid
+        else:
+            den = ffb - ffa
+            x = np.where(den > 0, bb - ffb * (bb - aa) / np.where(den > 0, den, 1.0), mid)
+            x = np.where((x > aa) & (x < bb), x, mid)
+        fx = f(x, active)
+        right, left = fx > 0, fx < 0  # the root is left of x (x becomes b) or right of it (x becomes a)
+        if k % 3 != 2:  # Illinois: the end that stays has its value halved, so that it moves next time
+            ffa = np.where(right, 0.5 * ffa, ffa)
+            ffb = np.where(left, 0.5 * ffb, ffb)
+        exact = ~(right | left)
+        a[active] = np.where(left | exact, x, aa)
+        b[active] = np.where(right | exact, x, bb)
+        fa[active] = np.where(left, fx, ffa)
+        fb[active] = np.where(right, fx, ffb)
+        width = b[active] - a[active]
+        active = active[width > xtol * (1.0 + np.abs(x))]
+        if active.size == 0:
+            break
+    return 0.5 * (a + b)

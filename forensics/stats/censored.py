@@ -69,6 +69,8 @@ SMOOTH_SIGMA = 2.0
 #: How far into a tail beyond a bound the closed form holds: while the log density falls by at most this much per
 #: level (z/σ ≤ TAIL_SLOPE); the next Euler–Maclaurin term is then ≲ TAIL_SLOPE³/720 of the density.
 TAIL_SLOPE = 0.25
+#: The closed form is used only where the levels between the bounds hold at least this much of the mass.
+MIN_INNER_MASS = 1e-12
 
 
 def readout_moments(mu, sigma, lo: int, hi: int, truncate: bool = False,
@@ -142,8 +144,13 @@ def _smooth_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
     # where the sum would cost O(σ) per value over every dark-frame pixel predicted below 0 during a fit)
     tail = np.maximum(1.0, TAIL_SLOPE * sigma)
     ok &= (a <= tail) & (b >= -tail)
+    # a mean many σ beyond a bound leaves (nearly) no mass between them: the closed form's ratios need some
+    # (a 6-σ reach of a hot pixel's wide noise put p_in at 0 and the ratios at 0/0); those values are summed
+    p_all = np.zeros(mu.shape)
+    p_all[ok] = _mass_between(a[ok], b[ok])
+    ok &= p_all > MIN_INNER_MASS
     a, b, m, s = a[ok], b[ok], mu[ok], sigma[ok]
-    p_in = _mass_between(a, b)
+    p_in = p_all[ok]
     fa, fb = _phi(a), _phi(b)
     r1 = (fa - fb) / p_in
     r2 = (np.where(np.isfinite(a), a * fa, 0.0) - np.where(np.isfinite(b), b * fb, 0.0)) / p_in

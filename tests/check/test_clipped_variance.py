@@ -27,3 +27,29 @@ def test_near_bound_matches_the_truncated_readout():
     assert out[1] == sigma**2 + QUANT_VAR  # bins away from the bounds keep σ² + 1/12 exactly
     # the latent mean found is the one whose readout mean is the level
     assert abs(float(readout_moments(0.0, sigma, 0, 255)[0]) - level) < 0.01
+
+
+def test_bracketed_root_agrees_with_bisection_in_fewer_evaluations():
+    """near_bound's root finder (regula falsi, Illinois, a bisection every third step, per-value stopping) finds
+    the latent means of readout means near 0 DN where 50 bisections do, to 10⁻¹¹ DN — including nearly quantised
+    readouts (σ down to 0.05 DN, a staircase in μ) — at under half the readout evaluations per value."""
+    from forensics.check.prediction import bracketed_root
+
+    rng = np.random.default_rng(0)
+    m = rng.uniform(0.2, 6.0, (400, 5))
+    sig = np.broadcast_to(rng.uniform(0.05, 3.0, (400, 1)), m.shape)
+    evaluated = []
+
+    def excess(x, at):
+        evaluated.append(at.size)
+        return readout_moments(x, sig.ravel()[at], 0, 4095)[0] - m.ravel()[at]
+
+    s = np.sqrt(sig**2 + QUANT_VAR)
+    a, b = m - 10 * s - 2, m + 10 * s + 2
+    root = bracketed_root(excess, a.ravel(), b.ravel()).reshape(m.shape)
+    for _ in range(50):
+        mid = 0.5 * (a + b)
+        below = readout_moments(mid, sig, 0, 4095)[0] < m
+        a, b = np.where(below, mid, a), np.where(below, b, mid)
+    assert np.max(np.abs(root - 0.5 * (a + b))) < 1e-11
+    assert sum(evaluated) < 0.5 * 50 * m.size
