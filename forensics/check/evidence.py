@@ -25,6 +25,7 @@ from forensics.check.detection import detect_defects
 from forensics.check.measurements import Measurements
 from forensics.check.pixels import PixelData, pixel_data
 from forensics.check.prediction import Predictor
+from forensics.check.singles import single_frames, singles_note
 from forensics.check.streams import Streams
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device
@@ -84,12 +85,26 @@ class Evidence(EffectQuestions):
         by_epoch_ref = [[g.index for g in meas.groups if g.epoch == e and g.condition in common]
                         for e in range(len(times))]
         self.defects = DefectCounts(meas, detect_defects(meas, by_epoch_ref, common_threshold=True), self.bit_depth)
-        # --- pixel channel
-        self.rep = meas.repeated
+        # --- pixel channel: the repeated conditions (fitted on half a, scored on half b), then the single dark
+        # frames (fitted only: :mod:`forensics.check.singles`)
+        self.rep = meas.fitted
         self.rgroups = [meas.groups[g] for g in self.rep]
         fs = meas.clip_level
         self.censored = np.stack([(meas.lo[g] <= 0) | (meas.hi[g] >= fs) for g in self.rep])
-        self.usable = meas.interior[None] & ~self.censored
+        n_rep = len(meas.repeated)
+        #: the single frames' noise law, cosmic-ray hits and floor (None without single dark frames)
+        self.singles = single_frames(meas, ~self.censored)
+        readable = ~self.censored  # border included (the dark frames' patterns are measured there)
+        if self.singles is not None:
+            readable[n_rep:] &= ~self.singles.hits if self.singles.law is not None else False
+            self.notes += singles_note(meas, self.singles)
+        self._readable = readable
+        fit_ok = meas.interior[None] & readable
+        #: (R, H, W) the pixel means the pixel channel fits (cosmic-ray hits and censored means excluded)
+        self.fit_usable = fit_ok
+        #: (R, H, W) the pixel means it scores: those of the repeated conditions (the single frames have no
+        #: held-out half)
+        self.usable = fit_ok & (np.arange(len(self.rep)) < n_rep)[:, None, None]
         self.predictor = Predictor(meas, self.rgroups)
         self._initial_pixels: PixelData | None = None
 
@@ -99,9 +114,11 @@ class Evidence(EffectQuestions):
         if catalogue is None or catalogue is self.initial_catalogue:
             if self._initial_pixels is None:
                 self._initial_pixels = pixel_data(self.meas, self.rgroups, self.times, self.usable,
-                                                  self.initial_catalogue, ~self.censored)
+                                                  self.initial_catalogue, self._readable, self.fit_usable,
+                                                  self.singles)
             return self._initial_pixels
-        return pixel_data(self.meas, self.rgroups, self.times, self.usable, catalogue, ~self.censored)
+        return pixel_data(self.meas, self.rgroups, self.times, self.usable, catalogue, self._readable,
+                          self.fit_usable, self.singles)
 
     def redetect(self, device: Device) -> DefectCatalogue:
         """Detect the pixel classes again against the model's prediction for defect-free pixels, so that fixed
