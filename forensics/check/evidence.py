@@ -25,7 +25,7 @@ from forensics.check.detection import detect_defects
 from forensics.check.measurements import Measurements
 from forensics.check.pixels import PixelData, pixel_data
 from forensics.check.prediction import Predictor
-from forensics.check.singles import single_frames, singles_note
+from forensics.check.singles import single_frames, singles_note, without_hits
 from forensics.check.streams import Streams
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device
@@ -70,21 +70,6 @@ class Evidence(EffectQuestions):
         self.bit_depth = int(np.clip(round(math.log2(meas.full_scale + 1)), 1, 16))
         self.times = times = meas.epoch_times
         self.notes: list[str] = []
-        # --- detection: classes from every frame of an epoch; counts from the conditions every epoch has
-        self.by_epoch_all = [[g.index for g in meas.groups if g.epoch == e] for e in range(len(times))]
-        self.initial_catalogue = detect_defects(meas, self.by_epoch_all, common_threshold=False,
-                                                look_back_z=CLASS_LOOK_BACK_Z).catalogue
-        conditions = [{g.condition for g in meas.groups if g.epoch == e} for e in range(len(times))]
-        common = set.intersection(*conditions) if conditions else set()
-        if not common:
-            common = set().union(*conditions)
-            if len(times) > 1:
-                self.notes.append("no condition is measured at every epoch: defect counts use every frame "
-                                  "(detection sensitivity may differ between epochs)")
-        self.reference_conditions = sorted(common, key=str)
-        by_epoch_ref = [[g.index for g in meas.groups if g.epoch == e and g.condition in common]
-                        for e in range(len(times))]
-        self.defects = DefectCounts(meas, detect_defects(meas, by_epoch_ref, common_threshold=True), self.bit_depth)
         # --- pixel channel: the repeated conditions (fitted on half a, scored on half b), then the single dark
         # frames (fitted only: :mod:`forensics.check.singles`)
         self.rep = meas.fitted
@@ -99,12 +84,31 @@ class Evidence(EffectQuestions):
             readable[n_rep:] &= ~self.singles.hits if self.singles.law is not None else False
             self.notes += singles_note(meas, self.singles)
         self._readable = readable
+        #: the measurements defect detection sees (:func:`~forensics.check.singles.without_hits`)
+        self.detect_meas = without_hits(meas, self.singles)
         fit_ok = meas.interior[None] & readable
         #: (R, H, W) the pixel means the pixel channel fits (cosmic-ray hits and censored means excluded)
         self.fit_usable = fit_ok
         #: (R, H, W) the pixel means it scores: those of the repeated conditions (the single frames have no
         #: held-out half)
         self.usable = fit_ok & (np.arange(len(self.rep)) < n_rep)[:, None, None]
+        # --- detection: classes from every frame of an epoch; counts from the conditions every epoch has
+        # (cosmic-ray hits of the single frames replaced by their pixel's line: a one-frame excess is no defect)
+        seen = self.detect_meas
+        self.by_epoch_all = [[g.index for g in meas.groups if g.epoch == e] for e in range(len(times))]
+        self.initial_catalogue = detect_defects(seen, self.by_epoch_all, common_threshold=False,
+                                                look_back_z=CLASS_LOOK_BACK_Z).catalogue
+        conditions = [{g.condition for g in meas.groups if g.epoch == e} for e in range(len(times))]
+        common = set.intersection(*conditions) if conditions else set()
+        if not common:
+            common = set().union(*conditions)
+            if len(times) > 1:
+                self.notes.append("no condition is measured at every epoch: defect counts use every frame "
+                                  "(detection sensitivity may differ between epochs)")
+        self.reference_conditions = sorted(common, key=str)
+        by_epoch_ref = [[g.index for g in meas.groups if g.epoch == e and g.condition in common]
+                        for e in range(len(times))]
+        self.defects = DefectCounts(seen, detect_defects(seen, by_epoch_ref, common_threshold=True), self.bit_depth)
         self.predictor = Predictor(meas, self.rgroups)
         self._initial_pixels: PixelData | None = None
 
@@ -123,5 +127,5 @@ class Evidence(EffectQuestions):
     def redetect(self, device: Device) -> DefectCatalogue:
         """Detect the pixel classes again against the model's prediction for defect-free pixels, so that fixed
         patterns the model now explains (a per-pixel gain, column offsets) no longer raise the threshold."""
-        return detect_defects(self.meas, self.by_epoch_all, common_threshold=False, look_back_z=CLASS_LOOK_BACK_Z,
+        return detect_defects(self.detect_meas, self.by_epoch_all, common_threshold=False, look_back_z=CLASS_LOOK_BACK_Z,
                               reference=self.predictor.reference(device)).catalogue

@@ -26,7 +26,7 @@ from forensics.check.scene import (
     loo_quadratic_kernel,
     scene_estimate_and_fill,
 )
-from forensics.check.singles import SingleFrames
+from forensics.check.singles import SingleFrames, robust_variance_line
 from forensics.sensor.catalogue import DefectCatalogue
 
 
@@ -367,6 +367,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     qs = (np.arange(n_spread) + 0.5) / n_spread
     labels = np.full(usable.shape, -1, np.int16 if n_bins * len(rgroups) < 2**15 else np.int32)
     near_rows = near_bound_conditions(meas, usable, classes, near_fraction)
+    dark = dark_groups(rgroups)
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
         if m.sum() < 30 or g.scenes:  # photographs: a pixel's spread over scenes is not its temporal variance
@@ -394,6 +395,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
         # mean select on the variance (8-bit, σ 0.7 DN: ±9 % between bins); each bin still reports the mean
         # of its pixels' own means (unbiased for their latent level, on which the noise laws depend)
         key = lev if scene is None else scene[r][m]
+        outlier = robust_variance_line(lev, v, g.n - 1)[2] if dark[r] else np.zeros(lev.shape, bool)
         edges = np.quantile(key, np.linspace(0, 1, n_bins + 1))
         which = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, n_bins - 1)
         sites = np.flatnonzero(m.ravel())  # lev's pixels, in the order of the boolean index
@@ -401,6 +403,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
             s = which == k
             if s.sum() < 10:
                 continue
+            s &= ~outlier  # a cosmic-ray hit in one frame of a repeated dark condition is not the pixel's noise
             labels[r].reshape(-1)[sites[s]] = len(rows)
             rows.append((r, float(lev[s].mean()), float(v[s].mean()), int(s.sum() * (g.n - 1))))
             spread.append(np.full(n_spread, np.nan))

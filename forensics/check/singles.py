@@ -23,10 +23,12 @@ estimate), so the pixel channel fits it all the same (:attr:`~forensics.check.me
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy import stats
 
 from forensics.check.classes import NORMAL, QUANT_VAR, dark_groups
 from forensics.check.measurements import Group, Measurements
@@ -48,8 +50,6 @@ CLUSTER_GAP_C = 2.0
 NOMINAL_T_DOUBLE = 7.0
 #: A dark condition whose mean residual lies this many robust standard deviations from the others' is named.
 K_MISFIT = 5.0
-#: Quantile bins of level over which the pooled dark variance law is fitted.
-LAW_BINS = 24
 
 
 @dataclass(frozen=True)
@@ -83,18 +83,51 @@ class SingleFrames:
         return {meas.groups[g].label(): int(self.hits[k].sum()) for k, g in enumerate(meas.single)}
 
 
+#: A pixel's temporal variance whose χ² tail probability, at the variance its level predicts, is below this is
+#: an outlier (a cosmic-ray hit in one frame; a telegraph pixel): the mean left out of a χ² sample is ≈ 10⁻⁵ relative.
+OUTLIER_P = 1e-6
+
+
+def robust_variance_line(level: np.ndarray, v: np.ndarray, df: np.ndarray | int,
+                         iterations: int = 4) -> tuple[float, float, np.ndarray]:
+    """σ² = a + b·level fitted to sample variances ``v`` (``df`` degrees of freedom each) at the pixels' own
+    means ``level``, without their outliers: ``(a, b, outlier)``.
+
+    Outliers are variances beyond the χ² tail of probability :data:`OUTLIER_P` about the line (a cosmic-ray hit
+    in one frame of a repeated condition, a telegraph pixel).  The line starts from the median variance (a few
+    hits cannot move it, whatever their size) and is refitted (least squares weighted by the χ² variance of
+    each value, 2σ⁴/df) on the values within the tail, from scratch each time, so that warm pixels — whose shot
+    noise grows with their level — are judged against the line at their own level, not the bulk's.
+    """
+    df_arr = np.maximum(np.broadcast_to(np.asarray(df, float), v.shape), 1.0)
+    cut = stats.chi2.isf(OUTLIER_P, df_arr) / df_arr
+    median = float(np.median(v)) if v.size else 0.0
+    a, b = median, 0.0
+    keep = np.ones(v.shape, bool)
+    for _ in range(iterations):
+        expected = np.maximum(a + b * level, QUANT_VAR)
+        keep = v <= expected * cut
+        if keep.sum() < 3:
+            break
+        w = df_arr[keep] / expected[keep] ** 2
+        x, y = level[keep], v[keep]
+        xm = float(np.average(x, weights=w))
+        sxx = float(np.sum(w * (x - xm) ** 2))
+        b = max(float(np.sum(w * (x - xm) * (y - np.average(y, weights=w)))) / sxx, 0.0) if sxx > 0 else 0.0
+        a = float(np.average(y, weights=w)) - b * xm  # a variance never falls with the level: b ≥ 0
+    return a, b, ~keep
+
+
 def dark_variance_law(meas: Measurements, readable: np.ndarray) -> DarkLaw | None:
     """σ² = a + b·level fitted over the interior, readable pixels of the repeated dark conditions
-    (``readable``: ``(R, H, W)`` over :attr:`~Measurements.fitted`), their frame-to-frame level changes removed.
-
-    Binned in quantiles of level (:data:`LAW_BINS`); in each bin the variances above five times its median are
-    left out (telegraph pixels), the rest averaged; the line is fitted to the bins weighted by their pixels.
-    A dark frame's normal pixels span a few DN, its hot pixels thousands: the slope (shot noise per DN of dark
-    charge) comes from the hot pixels, the intercept from the bulk.  None without a repeated dark condition.
+    (``readable``: ``(R, H, W)`` over :attr:`~Measurements.fitted`), their frame-to-frame level changes removed
+    and their outliers left out (:func:`robust_variance_line`).  A dark frame's normal pixels span a few DN, its
+    hot pixels thousands: the slope (shot noise per DN of dark charge) comes from the hot pixels, the intercept
+    from the bulk.  None without a repeated dark condition.
     """
     from forensics.check.pixels import level_changes
 
-    levels, variances = [], []
+    levels, variances, dfs = [], [], []
     for r, g in enumerate(meas.repeated):
         group = meas.groups[g]
         if not dark_groups([group])[0]:
@@ -102,30 +135,14 @@ def dark_variance_law(meas: Measurements, readable: np.ndarray) -> DarkLaw | Non
         m = readable[r] & meas.interior & (meas.var_all[g] > 0)
         levels.append(meas.mean_all[g][m])
         variances.append(meas.var_all[g][m] - level_changes(meas, group))
+        dfs.append(np.full(int(m.sum()), group.n - 1.0))
     if not levels:
         return None
     lev, var = np.concatenate(levels), np.concatenate(variances)
     if lev.size < 10:
         return DarkLaw(float(np.median(var)) if var.size else QUANT_VAR, 0.0, len(levels))
-    edges = np.unique(np.quantile(lev, np.linspace(0, 1, LAW_BINS + 1)))
-    which = np.clip(np.searchsorted(edges, lev, side="right") - 1, 0, max(len(edges) - 2, 0))
-    xs, ys, ws = [], [], []
-    for k in np.unique(which):
-        s = which == k
-        v = var[s]
-        keep = v <= 5.0 * np.median(v)
-        if keep.sum() < 3:
-            continue
-        xs.append(float(lev[s][keep].mean()))
-        ys.append(float(v[keep].mean()))
-        ws.append(float(keep.sum()))
-    x, y, w = np.array(xs), np.array(ys), np.array(ws)
-    if x.size < 2 or np.ptp(x) <= 0:
-        return DarkLaw(float(np.average(y, weights=w)), 0.0, len(levels))
-    xm = float(np.average(x, weights=w))
-    b = float(np.sum(w * (x - xm) * (y - np.average(y, weights=w))) / np.sum(w * (x - xm) ** 2))
-    b = max(b, 0.0)  # a variance never falls with the dark charge
-    return DarkLaw(float(np.average(y, weights=w)) - b * xm, b, len(levels))
+    a, b, _ = robust_variance_line(lev, var, np.concatenate(dfs))
+    return DarkLaw(a, b, len(levels))
 
 
 def temperature_clusters(groups: list[Group]) -> list[list[int]]:
@@ -231,6 +248,20 @@ def single_frames(meas: Measurements, readable: np.ndarray) -> SingleFrames | No
         return SingleFrames(None, np.zeros((S, *meas.shape), bool), empty, empty)
     hits, level = cosmic_hits(meas, readable, law)
     return SingleFrames(law, hits, level, law(level))
+
+
+def without_hits(meas: Measurements, sf: SingleFrames | None) -> Measurements:
+    """``meas`` with every cosmic-ray sample of the single frames replaced by its pixel's line (mean, lowest and
+    highest readout), for defect detection: a one-frame excess is no defect (a hit in a short exposure read as a
+    pixel whose output falls with the light, "stuck").  ``meas`` itself when there are no hits."""
+    if sf is None or sf.law is None or not sf.hits.any():
+        return meas
+    mean_all, lo, hi = meas.mean_all.copy(), meas.lo.copy(), meas.hi.copy()
+    for k, g in enumerate(meas.single):
+        hit = sf.hits[k]
+        for arr in (mean_all, lo, hi):
+            arr[g][hit] = sf.level[k][hit]
+    return dataclasses.replace(meas, mean_all=mean_all, lo=lo, hi=hi)
 
 
 def singles_note(meas: Measurements, sf: SingleFrames | None) -> list[str]:

@@ -365,7 +365,9 @@ class DarkCurrent(Effect):
     def realize(self, device: Device, rng: np.random.Generator) -> None:
         device.state[self.key] = (self.sigma_rate * rng.standard_normal(device.model.shape)).astype(np.float32)
         cat = device.catalogue
-        cat.extra[self._defect_key] = np.where(cat.kind == PARTIAL, rng.uniform(0, self.rate_max, len(cat)), 0.0)
+        # a fit may set rate_max below 0 (the hot pixels' own rates taken over by the non-uniformity values)
+        cat.extra[self._defect_key] = np.where(cat.kind == PARTIAL, rng.uniform(0, max(self.rate_max, 0.0), len(cat)),
+                                               0.0)
 
     def patterns(self, device: Device) -> list[Pattern]:
         h, w = device.model.shape
