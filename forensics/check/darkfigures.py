@@ -50,7 +50,10 @@ def carried_rate(rate: ParamEstimate, t_double: ParamEstimate, t_ref: float, tem
     value = r * 2.0 ** ((temperature - t_ref) / td)
     c = -(temperature - t_ref) * math.log(2.0) / td**2  # ∂ ln rate / ∂ T_d
     cov = rate.cov.get(t_double.label, 0.0)
-    var = (rate.se / r) ** 2 + c * c * t_double.se**2 + 2.0 * c * cov / r if r > 0 else math.inf
+    if r <= 0:  # at the bound: only an upper limit is meaningful, from the rate's own standard error
+        return {"temperature_c": temperature, "value": value,
+                "interval": [0.0, (r + Z95 * rate.se) * 2.0 ** ((temperature - t_ref) / td)]}
+    var = (rate.se / r) ** 2 + c * c * t_double.se**2 + 2.0 * c * cov / r
     sd = math.sqrt(max(var, 0.0))
     return {"temperature_c": temperature, "value": value,
             "interval": [value * math.exp(-Z95 * sd), value * math.exp(Z95 * sd)]}
@@ -115,7 +118,8 @@ def dark_figures(ev: Evidence, fitted: FittedModel) -> dict[str, Any] | None:
     shot = _param(fitted.params, "shot_noise.g")
     if shot is not None and shot.value > 0:
         lo, hi = shot.value + Z95 * shot.se, shot.value - Z95 * shot.se
-        out["gain_e_per_adu"] = {"value": 1.0 / shot.value, "interval": [1.0 / lo, 1.0 / hi if hi > 0 else math.inf]}
+        # an interval reaching g = 0 has no upper end in e⁻/ADU: None (JSON null)
+        out["gain_e_per_adu"] = {"value": 1.0 / shot.value, "interval": [1.0 / lo, 1.0 / hi if hi > 0 else None]}
     return out
 
 
@@ -137,7 +141,7 @@ def format_dark_figures(fig: dict[str, Any]) -> list[str]:
     """The figures as lines of text (for the command's summary)."""
     def iv(x: dict[str, Any], fmt: str = ".4g") -> str:
         lo, hi = x["interval"]
-        return f"{x['value']:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
+        return f"{x['value']:{fmt}} [{lo:{fmt}}, {'∞' if hi is None else format(hi, fmt)}]"
 
     lines = [f"Dark series (ADU = DN; 95 % intervals; rates carried with the fitted law from T_ref = "
              f"{fig['t_ref_c']:g} °C)"]
