@@ -222,6 +222,10 @@ def format_check(result: Any) -> str:
         size = f"; size in the frames {_g(p.size)} ± {_g(p.size_se)}" if p.size is not None else ""
         lines.append(f"  {p.effect + '.' + p.name:<32} pattern over {p.blocks} blocks: rms {_g(p.rms)}, "
                      f"max |value| {_g(p.maximum)}{hyper}{size}")
+    if d.get("dark_series"):
+        from forensics.check.darkfigures import format_dark_figures
+
+        lines += ["", *format_dark_figures(d["dark_series"])]
     e = result.error
     before = result.baseline.error if result.baseline is not None else None
 

@@ -12,7 +12,8 @@ The stages, one module each, data flowing one way:
 ``detection``     stuck and partially stuck pixels per epoch (onsets: :mod:`forensics.defects.onsets`)
 ``evidence``      what models are fitted to (:class:`Evidence`): ``arrivals`` (counts, sites, the arrival
                   model's predictions), ``pixels`` (pixel classes, scene estimates, noise floor, variance
-                  bins), ``prediction`` (forward models), ``streams`` (Monte-Carlo streams)
+                  bins), ``singles`` (single dark frames: their noise law, cosmic-ray hits, misfits),
+                  ``prediction`` (forward models), ``streams`` (Monte-Carlo streams)
 ``fit``           :func:`fit_model` → :class:`FittedModel` (``pixelfit``, ``projection``, ``params``: new
                   effects, never mutated ones)
 ``gof``           held-out error per pixel class and each channel's goodness of fit
@@ -21,7 +22,8 @@ The stages, one module each, data flowing one way:
 ``structure``     residual structure no fitted effect explains: row, column and radial profiles and
                   covariate trends of the residual, each tested against noise; the strongest named
                   (:func:`residual_structure` → :class:`StructureResult`)
-``result``        the result dataclasses (``to_dict()`` for ``--json``)
+``result``        the result dataclasses (``to_dict()`` for ``--json``); ``darkfigures`` a dark series' fitted
+                  law in ADU, ADU/s and e⁻/ADU with intervals (:func:`dark_figures`)
 ``run``           :func:`check`, :func:`run_check`, :func:`base_model`, :func:`candidate_names`
 ``select``        forward selection of several effects: :func:`check_auto`, :func:`forward_select` →
                   :class:`SelectionResult` (the path base → +A → +B …)
@@ -38,6 +40,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
         "classes": ["CHANNELS", "CLASSES"],
+        "darkfigures": ["dark_figures"],
         "diagnosis": ["FLAG_DBIC", "FLAG_P", "diagnose"],
         "evidence": ["Evidence"],
         "fit": ["FittedModel", "fit_model"],
@@ -51,5 +54,6 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "select": ["Attempt", "SelectionResult", "Step", "check_auto", "forward_select"],
         "structure": ["residual_structure"],
         "signatures": ["Signature"],
+        "singles": ["SingleFrames", "single_frames"],
     },
 )

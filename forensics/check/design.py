@@ -33,10 +33,11 @@ def design_warnings(ev: Evidence, px: PixelData, candidates: list[Candidate], ef
         users = [n for n, c in EFFECTS.items() if c.role == "candidate" and c.stage in (Stage.GAIN, Stage.RESPONSE)]
         out.append(f"the data have {levels} distinct light level(s); with fewer than 3 a per-pixel response and a "
                    f"response curve cannot be told apart ({', '.join(users)}): add flat fields at a third light level")
-    reps = [g.n for g in meas.groups]
-    if min(reps) < 2:
-        out.append(f"{sum(1 for r in reps if r < 2)} condition(s) have a single frame: they serve defect detection only; "
-                   "take 2 frames per condition for the noise floor")
+    fitted_singles = set(meas.single) if ev.singles is not None and ev.singles.law is not None else set()
+    unfitted = sum(1 for g in meas.groups if g.n < 2 and g.index not in fitted_singles)
+    if unfitted:
+        out.append(f"{unfitted} condition(s) have a single frame{' and are not dark frames' if fitted_singles else ''}: "
+                   "they serve defect detection only; take 2 frames per condition for the noise floor")
     if meas.has_time and len(ev.times) < 5:
         out.append(f"only {len(ev.times)} epochs: defect arrival and placement need at least 5 epochs of a few frames each")
     # near-ties between flagged candidates

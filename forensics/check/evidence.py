@@ -27,6 +27,7 @@ from forensics.check.detection import detect_defects
 from forensics.check.measurements import Measurements
 from forensics.check.pixels import PixelData, pixel_data
 from forensics.check.prediction import Predictor
+from forensics.check.singles import single_frames, singles_note, without_hits
 from forensics.check.streams import Streams
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device, Effect
@@ -71,9 +72,33 @@ class Evidence(EffectQuestions):
         self.bit_depth = int(np.clip(round(math.log2(meas.full_scale + 1)), 1, 16))
         self.times = times = meas.epoch_times
         self.notes: list[str] = []
+        # --- pixel channel: the repeated conditions (fitted on half a, scored on half b), then the single dark
+        # frames (fitted only: :mod:`forensics.check.singles`)
+        self.rep = meas.fitted
+        self.rgroups = [meas.groups[g] for g in self.rep]
+        fs = meas.clip_level
+        self.censored = np.stack([(meas.lo[g] <= 0) | (meas.hi[g] >= fs) for g in self.rep])
+        n_rep = len(meas.repeated)
+        #: the single frames' noise law, cosmic-ray hits and floor (None without single dark frames)
+        self.singles = single_frames(meas, ~self.censored)
+        readable = ~self.censored  # border included (the dark frames' patterns are measured there)
+        if self.singles is not None:
+            readable[n_rep:] &= ~self.singles.hits if self.singles.law is not None else False
+            self.notes += singles_note(meas, self.singles)
+        self._readable = readable
+        #: the measurements defect detection sees (:func:`~forensics.check.singles.without_hits`)
+        self.detect_meas = without_hits(meas, self.singles)
+        fit_ok = meas.interior[None] & readable
+        #: (R, H, W) the pixel means the pixel channel fits (cosmic-ray hits and censored means excluded)
+        self.fit_usable = fit_ok
+        #: (R, H, W) the pixel means it scores: those of the repeated conditions (the single frames have no
+        #: held-out half)
+        self.usable = fit_ok & (np.arange(len(self.rep)) < n_rep)[:, None, None]
         # --- detection: classes from every frame of an epoch; counts from the conditions every epoch has
+        # (cosmic-ray hits of the single frames replaced by their pixel's line: a one-frame excess is no defect)
+        seen = self.detect_meas
         self.by_epoch_all = [[g.index for g in meas.groups if g.epoch == e] for e in range(len(times))]
-        self.initial_catalogue = detect_defects(meas, self.by_epoch_all, common_threshold=False,
+        self.initial_catalogue = detect_defects(seen, self.by_epoch_all, common_threshold=False,
                                                 look_back_z=CLASS_LOOK_BACK_Z).catalogue
         conditions = [{g.condition for g in meas.groups if g.epoch == e} for e in range(len(times))]
         common = set.intersection(*conditions) if conditions else set()
@@ -85,13 +110,7 @@ class Evidence(EffectQuestions):
         self.reference_conditions = sorted(common, key=str)
         by_epoch_ref = [[g.index for g in meas.groups if g.epoch == e and g.condition in common]
                         for e in range(len(times))]
-        self.defects = DefectCounts(meas, detect_defects(meas, by_epoch_ref, common_threshold=True), self.bit_depth)
-        # --- pixel channel
-        self.rep = meas.repeated
-        self.rgroups = [meas.groups[g] for g in self.rep]
-        fs = meas.clip_level
-        self.censored = np.stack([(meas.lo[g] <= 0) | (meas.hi[g] >= fs) for g in self.rep])
-        self.usable = meas.interior[None] & ~self.censored
+        self.defects = DefectCounts(seen, detect_defects(seen, by_epoch_ref, common_threshold=True), self.bit_depth)
         self.predictor = Predictor(meas, self.rgroups)
         self._initial_pixels: PixelData | None = None
         self._simulations: dict[Any, Any] = {}
@@ -119,12 +138,14 @@ class Evidence(EffectQuestions):
         if catalogue is None or catalogue is self.initial_catalogue:
             if self._initial_pixels is None:
                 self._initial_pixels = pixel_data(self.meas, self.rgroups, self.times, self.usable,
-                                                  self.initial_catalogue, ~self.censored)
+                                                  self.initial_catalogue, self._readable, self.fit_usable,
+                                                  self.singles)
             return self._initial_pixels
-        return pixel_data(self.meas, self.rgroups, self.times, self.usable, catalogue, ~self.censored)
+        return pixel_data(self.meas, self.rgroups, self.times, self.usable, catalogue, self._readable,
+                          self.fit_usable, self.singles)
 
     def redetect(self, device: Device) -> DefectCatalogue:
         """Detect the pixel classes again against the model's prediction for defect-free pixels, so that fixed
         patterns the model now explains (a per-pixel gain, column offsets) no longer raise the threshold."""
-        return detect_defects(self.meas, self.by_epoch_all, common_threshold=False, look_back_z=CLASS_LOOK_BACK_Z,
+        return detect_defects(self.detect_meas, self.by_epoch_all, common_threshold=False, look_back_z=CLASS_LOOK_BACK_Z,
                               reference=self.predictor.reference(device)).catalogue

@@ -111,9 +111,11 @@ def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], inform
         if se is not None and extra_cov is not None and np.isfinite(extra_cov[i, i]):
             se = float(np.sqrt(se**2 + max(float(extra_cov[i, i]), 0.0)))
         bound, limit = _at_bound(value, effects[j].bounds(n), se if ok and converged else None)
+        cov = {names[o]: float(ident.cov[i, o]) for o in range(len(free))
+               if o != i and ok and converged and np.isfinite(ident.cov[i, o])}
         out.append(ParamEstimate(effects[j].key, n, value, se if ok and converged else None,
                                  unit(effects[j], n), identifiable=ok, converged=converged, note=note,
-                                 bound=bound, limit=limit))
+                                 bound=bound, limit=limit, cov=cov))
     return out
 
 

@@ -106,8 +106,10 @@ class Measurements:
     """Per-condition statistics of a dataset, ready for checking.
 
     Arrays indexed ``[g]`` run over :attr:`groups` (every condition); those
-    indexed by the pixel channel run over :attr:`repeated` (conditions with at
-    least two frames), in that order.
+    indexed by the pixel channel run over :attr:`fitted` — the conditions with at
+    least two frames (:attr:`repeated`), then the dark conditions of a single frame
+    (:attr:`single`), in that order.  A single frame is fitted, never scored: its
+    half *a* and half *b* are the frame itself.
     """
 
     root: Path
@@ -139,6 +141,15 @@ class Measurements:
     #: the readout's upper clip level when the data saturate below the full scale (a sensor's full well reached
     #: before the converter's top: :func:`saturation_level`); None: the full scale
     saturation: float | None = None
+    #: dark conditions of a single frame (a dark series' one frame per exposure): fitted by the pixel channel
+    #: with the noise the repeats' variance law predicts, not scored (:mod:`forensics.check.singles`)
+    single: list[int] = field(default_factory=list)
+
+    @property
+    def fitted(self) -> list[int]:
+        """The conditions the pixel channel fits, in the order of its arrays: :attr:`repeated`, then
+        :attr:`single`."""
+        return self.repeated + self.single
 
     @property
     def clip_level(self) -> float:
@@ -495,22 +506,58 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
                              "the noise floor is measured from repeated frames of one condition (same exposure_s, "
                              "iso, temperature_c, subject, light and epoch): take at least 2 frames per condition")
         notes.append(PHOTOGRAPHS_NOTE)
+    single = single_dark_conditions(groups)
+    notes += off_set_point(ds)
     items = [ConditionFrames(tuple(str(ds.frames[i].path) for i in g.frames),
                              tuple(ds.frames[i].file for i in g.frames), crop, g.n >= 2, g.scenes) for g in groups]
     parts = resolve(executor).map(condition_stats, items, progress=progress, desc="conditions")
     return _assemble(ds, groups, repeated, parts, (crop[0].stop - crop[0].start, crop[1].stop - crop[1].start),
-                     notes, has_time, epoch_times, border)
+                     notes, has_time, epoch_times, border, single)
+
+
+def off_set_point(ds: Dataset, tolerance: float | None = None) -> list[str]:
+    """A warning naming the frames whose measured temperature lies more than ``tolerance`` °C from their set
+    point (the sensor never reached it): their condition is at the temperature measured, and the dark
+    current's law carries them there — if the measured temperature is right.  ``tolerance``: default the FITS
+    reader's (:data:`forensics.io.fits.SETPOINT_TOLERANCE_C`)."""
+    from forensics.io.dataset import set_point
+    from forensics.io.fits import SETPOINT_TOLERANCE_C
+
+    tolerance = SETPOINT_TOLERANCE_C if tolerance is None else tolerance
+    off = []
+    for f in ds.frames:
+        sp_c = set_point(f)
+        if sp_c is not None and f.temperature_c is not None and abs(f.temperature_c - sp_c) > tolerance:
+            off.append(f"{f.file} ({f.temperature_c:.2f} °C, set point {sp_c:g} °C)")
+    if not off:
+        return []
+    return [f"{len(off)} frame(s) measured more than {tolerance:g} °C from their set point (the sensor had not "
+            f"settled): {', '.join(off[:5])}{' …' if len(off) > 5 else ''}; they are fitted at the temperature "
+            "measured"]
+
+
+def single_dark_conditions(groups: Sequence[Group]) -> list[int]:
+    """The conditions of one dark frame (``subject`` dark, not photographs): a dark series' one frame per
+    exposure and temperature.  The model predicts them from the chain alone (no scene estimate), so the pixel
+    channel can fit them with the noise its variance law predicts; light frames of one condition would need
+    their own scene estimate's noise and stay for defect detection only."""
+    from forensics.io.dataset import is_dark_subject
+
+    return [g.index for g in groups if g.n == 1 and not g.scenes and is_dark_subject(g.subject)]
 
 
 def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any, shp: tuple[int, int],
-              notes: list[str], has_time: bool, epoch_times: np.ndarray, border: int | None) -> Measurements:
+              notes: list[str], has_time: bool, epoch_times: np.ndarray, border: int | None,
+              single: list[int] | None = None) -> Measurements:
     """The :class:`Measurements` from the conditions' :class:`ConditionStats`, taken in condition order (so
     the float sums over conditions are the same whichever process computed each)."""
-    G, R = len(groups), len(repeated)
+    single = [g for g in (single or []) if g not in repeated]
+    G, R = len(groups), len(repeated) + len(single)
     mean_all, var_all, lo, hi, scene_all, var_resid = (np.zeros((G, *shp)) for _ in range(6))
     mean_a, mean_b = np.zeros((R, *shp)), np.zeros((R, *shp))
     n_a, n_b = np.zeros(R, int), np.zeros(R, int)
     rpos = {g: r for r, g in enumerate(repeated)}
+    spos = {g: len(repeated) + k for k, g in enumerate(single)}
     photo_ms: dict[int, np.ndarray] = {}  # repeated condition → (2, H, W) residual mean squares per half
     lag = Lag1()
     blocks: list[np.ndarray] = []
@@ -535,6 +582,9 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
                 notes.append(PHOTOGRAPHS_NOTE)
         for terms in part.lag:
             lag.add_terms(terms)
+        if g.index in spos:  # one frame: fitted, not scored; both "halves" are the frame
+            mean_a[spos[g.index]] = mean_b[spos[g.index]] = total.mean
+            n_a[spos[g.index]] = n_b[spos[g.index]] = 1
         if g.index not in rpos:
             continue
         r = rpos[g.index]
@@ -561,13 +611,14 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
         _refuse_content_free(ds, groups, dropped, excluded, notes)
     if dropped:  # keep the conditions measured, renumbered (rare: only here are arrays copied)
         keep = [g.index for g in groups if g.index not in dropped]
-        keep_r = [r for r, g in enumerate(repeated) if g not in dropped]
+        keep_r = [r for r, g in enumerate(repeated + single) if g not in dropped]
         mean_all, var_all, lo, hi, scene_all, var_resid = (x[keep] for x in (mean_all, var_all, lo, hi, scene_all,
                                                                              var_resid))
         mean_a, mean_b, n_a, n_b = (x[keep_r] for x in (mean_a, mean_b, n_a, n_b))
         half_ms = half_ms[keep_r] if half_ms is not None else None
         renumber = {old: new for new, old in enumerate(keep)}
         repeated = [renumber[g] for g in repeated if g not in dropped]
+        single = [renumber[g] for g in single if g not in dropped]
         groups = [g for g in groups if g.index not in dropped]
         for g in groups:
             g.index = renumber[g.index]
@@ -581,7 +632,8 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
                      "reached before the converter's top): readouts that reached it are censored")
     meas = Measurements(ds.root, shp, full_scale, border, epoch_times, has_time, groups, mean_all, var_all, lo, hi,
                         repeated, mean_a, mean_b, n_a, n_b, len(ds) - len(excluded), notes=notes,
-                        var_resid=var_resid, half_ms=half_ms, scene_all=scene_all, saturation=saturation)
+                        var_resid=var_resid, half_ms=half_ms, scene_all=scene_all, saturation=saturation,
+                        single=single)
     jpeg = any(Path(f.file).suffix.lower() in JPEG_SUFFIXES for f in ds.frames)
     meas.traits = NoiseTraits(lag.result(), blocks, jpeg)
     return meas

@@ -8,6 +8,7 @@ re-detection) gives a new :class:`PixelData`.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from forensics.check.scene import (
     loo_quadratic_kernel,
     scene_estimate_and_fill,
 )
+from forensics.check.singles import SingleFrames, robust_variance_line
 from forensics.sensor.catalogue import DefectCatalogue
 
 
@@ -130,10 +132,15 @@ class PixelData:
 
 
 def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, usable: np.ndarray,
-               catalogue: DefectCatalogue, readable: np.ndarray | None = None) -> PixelData:
+               catalogue: DefectCatalogue, readable: np.ndarray | None = None, fit_usable: np.ndarray | None = None,
+               singles: SingleFrames | None = None) -> PixelData:
     """Pixel classes from a catalogue of detected defects, the scene estimates (defects masked), the noise
-    floor (normal pixels) and the variance bins.  ``readable`` (R, H, W): the pixels whose means are not
-    censored, border included (for the patterns' weights in dark frames; default ``usable``)."""
+    floor (normal pixels) and the variance bins.  ``usable`` (R, H, W): the pixel means scored (and from which
+    the floor is measured); ``fit_usable``: those fitted (default ``usable``; the single dark frames' rows
+    too, their cosmic-ray hits left out); ``readable``: the pixels whose means are not censored, border
+    included (for the patterns' weights in dark frames; default ``fit_usable``).  ``singles``: the single
+    frames' floor, from the repeats' dark variance law (:mod:`forensics.check.singles`)."""
+    fit_usable = usable if fit_usable is None else fit_usable
     epoch_classes = class_maps(catalogue, meas.shape, times)
     classes = np.stack([epoch_classes[g.epoch] for g in rgroups])
     # scene estimates per half; the known defects are filled in, and the fill values kept so that the
@@ -153,17 +160,34 @@ def pixel_data(meas: Measurements, rgroups: Sequence[Group], times: np.ndarray, 
     scene = 0.5 * (np.stack([x[0] for x in sa]) + np.stack([x[0] for x in sb]))
     noise = noise_floor(meas, rep, usable, classes, rgroups, typical_levels(meas, rep, rgroups, usable, classes,
                                                                             scene))
+    noise = with_single_floor(noise, len(meas.repeated), singles)
     na = meas.n_a[:, None, None].astype(float)
     var_a = noise.floor * (1.0 + np.where(uses_scene(classes, rgroups), KERNEL_VAR, 0.0)) / na
-    weight = np.where(usable, 1.0 / var_a, 0.0)
-    border_dark = dark_groups(rgroups)[:, None, None] & ~meas.interior[None] & (usable if readable is None
+    weight = np.where(fit_usable, 1.0 / var_a, 0.0)
+    border_dark = dark_groups(rgroups)[:, None, None] & ~meas.interior[None] & (fit_usable if readable is None
                                                                                 else readable)
-    pattern_weight = np.where(usable | border_dark, 1.0 / var_a, 0.0) if border_dark.any() else weight
+    pattern_weight = np.where(fit_usable | border_dark, 1.0 / var_a, 0.0) if border_dark.any() else weight
     excluded = np.stack([((sa[r][1] != meas.mean_a[r]) | (sb[r][1] != meas.mean_b[r])) & ~defect_mask[r]
                          for r in range(len(rgroups))])
     bins = variance_bins(meas, rgroups, usable, classes, scene=scene)
     return PixelData(catalogue, classes, defect_mask, np.stack([x[0] for x in sa]), np.stack([x[0] for x in sb]),
                      fill_a, fill_b, refill_ops, noise, var_a, weight, bins, pattern_weight, excluded)
+
+
+def with_single_floor(noise: NoiseFloor, n_rep: int, singles: SingleFrames | None) -> NoiseFloor:
+    """``noise`` with the single frames' rows (after the ``n_rep`` repeated ones) taken from the repeats' dark
+    variance law: a single frame has no temporal variance of its own to measure a floor from."""
+    if singles is None or singles.law is None or noise.floor.shape[0] <= n_rep:
+        return noise
+    def replaced(x: np.ndarray | None) -> np.ndarray | None:
+        if x is None:
+            return None
+        out = x.copy()
+        out[n_rep:] = singles.floor
+        return out
+
+    return dataclasses.replace(noise, floor=replaced(noise.floor), raw=replaced(noise.raw),
+                               floor_b=replaced(noise.floor_b), raw_b=replaced(noise.raw_b))
 
 
 #: A pool of conditions with fewer pixels than this in the mask takes the slope pooled over all conditions.
@@ -343,6 +367,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     qs = (np.arange(n_spread) + 0.5) / n_spread
     labels = np.full(usable.shape, -1, np.int16 if n_bins * len(rgroups) < 2**15 else np.int32)
     near_rows = near_bound_conditions(meas, usable, classes, near_fraction)
+    dark = dark_groups(rgroups)
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
         if m.sum() < 30 or g.scenes:  # photographs: a pixel's spread over scenes is not its temporal variance
@@ -370,6 +395,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
         # mean select on the variance (8-bit, σ 0.7 DN: ±9 % between bins); each bin still reports the mean
         # of its pixels' own means (unbiased for their latent level, on which the noise laws depend)
         key = lev if scene is None else scene[r][m]
+        outlier = robust_variance_line(lev, v, g.n - 1)[2] if dark[r] else np.zeros(lev.shape, bool)
         edges = np.quantile(key, np.linspace(0, 1, n_bins + 1))
         which = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, n_bins - 1)
         sites = np.flatnonzero(m.ravel())  # lev's pixels, in the order of the boolean index
@@ -377,6 +403,7 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
             s = which == k
             if s.sum() < 10:
                 continue
+            s &= ~outlier  # a cosmic-ray hit in one frame of a repeated dark condition is not the pixel's noise
             labels[r].reshape(-1)[sites[s]] = len(rows)
             rows.append((r, float(lev[s].mean()), float(v[s].mean()), int(s.sum() * (g.n - 1))))
             spread.append(np.full(n_spread, np.nan))

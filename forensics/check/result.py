@@ -31,6 +31,9 @@ class ParamEstimate:
     note: str = ""
     bound: str = ""
     limit: float | None = None
+    #: covariances with the other identifiable parameters fitted alongside (``effect.name`` → value), for
+    #: quantities derived from several (a dark rate carried to another temperature with the fitted T_d)
+    cov: dict[str, float] = dataclasses.field(default_factory=dict)
 
     @property
     def label(self) -> str:

@@ -39,6 +39,9 @@ from forensics.check.measurements import Measurements, Region, load_measurements
 from forensics.check.result import CheckResult, CheckRow, HeldOut, PlotData
 from forensics.check.pixels import uses_scene
 from forensics.check.scene import KERNEL_VAR
+from forensics.check.darkfigures import dark_figures
+from forensics.check.singles import single_frame_warnings
+from forensics.check.singles import summary as singles_summary
 from forensics.check.structure import residual_structure
 from forensics._shared.errors import InputError
 from forensics.io.dataset import Dataset, open_dataset
@@ -117,7 +120,8 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
             checks.insert(0, CheckRow(f"pixel: held-out error² ({name}, {n} pixel means)", value**2, 1.0,
                                       (value**2 - 1) / math.sqrt(2 / max(n, 1))))
     candidates, notes = diagnose(ev, fitted, candidate_names(fitted.effects))
-    warn = list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
+    warn = (list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
+            + single_frame_warnings(ev, fitted))
     unsettled = fitted.not_converged
     if unsettled:
         # not a result: no error or gof is reported for a fit that did not settle
@@ -169,7 +173,9 @@ def _plot_data(ev: Evidence, fitted: FittedModel, consistency: np.ndarray, covar
 def _data_summary(ev: Evidence, fitted: FittedModel) -> dict[str, Any]:
     meas, px, defects = ev.meas, fitted.pixels, ev.defects
     return {"folder": str(meas.root), "frames": meas.n_frames, "conditions": len(meas.groups),
-            "repeated_conditions": len(ev.rep), "epochs": [float(t) for t in ev.times],
+            "repeated_conditions": len(meas.repeated), "single_frames": singles_summary(meas, ev.singles),
+            "dark_series": None if fitted.not_converged else dark_figures(ev, fitted),
+            "epochs": [float(t) for t in ev.times],
             "size": [meas.shape[1], meas.shape[0]], "full_scale": meas.full_scale, "border": meas.border,
             "light_levels": light_levels(ev, px),
             "defects": {"partial": int(defects.counts[PARTIAL][-1]), "stuck": int(defects.counts[STUCK][-1]),

@@ -342,10 +342,32 @@ class DarkCurrent(Effect):
     def _defect_key(self) -> str:
         return f"{self.key}.rate"
 
+    def fit(self, evidence: Any) -> "DarkCurrent":
+        """The checker's bespoke start: the reference temperature moved into the data when it lies outside the
+        temperatures of the dark frames with an exposure (to their exposure-weighted mean, rounded to 1 °C).
+
+        Why: the rate is fitted at ``t_ref``; a cooled CCD measured at −10 and −5 °C against the default 25 °C
+        has its rate extrapolated 30 °C, where it and T_d trade off almost exactly (correlation > 0.999: both
+        reported as not identifiable although the data determine them).  Where ``t_ref`` lies among the data's
+        temperatures it is kept (the rate then means what the user set it to mean)."""
+        from forensics.io.dataset import is_dark_subject
+
+        groups = [g for g in getattr(getattr(evidence, "meas", None), "groups", [])
+                  if is_dark_subject(g.subject) and g.temperature_c is not None and (g.exposure_s or 0) > 0]
+        if not groups:
+            return self
+        temps = np.array([g.temperature_c for g in groups], float)
+        if temps.min() - 1.0 <= self.t_ref <= temps.max() + 1.0:
+            return self
+        weights = np.array([g.exposure_s * g.n for g in groups], float)
+        return replace(self, t_ref=float(np.round(np.average(temps, weights=weights))))
+
     def realize(self, device: Device, rng: np.random.Generator) -> None:
         device.state[self.key] = (self.sigma_rate * rng.standard_normal(device.model.shape)).astype(np.float32)
         cat = device.catalogue
-        cat.extra[self._defect_key] = np.where(cat.kind == PARTIAL, rng.uniform(0, self.rate_max, len(cat)), 0.0)
+        # a fit may set rate_max below 0 (the hot pixels' own rates taken over by the non-uniformity values)
+        cat.extra[self._defect_key] = np.where(cat.kind == PARTIAL, rng.uniform(0, max(self.rate_max, 0.0), len(cat)),
+                                               0.0)
 
     def patterns(self, device: Device) -> list[Pattern]:
         h, w = device.model.shape
