@@ -32,12 +32,9 @@ def _dense_solution(X, Z, F, w, res, centred):
     return sol[:k * n].reshape(k, H, W)
 
 
-def test_coupled_step_equals_dense_least_squares():
-    """With Z proportional between frames (the case the solver's operator factors exactly), the step is the
-    dense constrained least-squares solution; two patterns (one centred), dark and light frames, uneven
-    weights.  Tolerance: the solver runs to a squared residual 1e-20 of the start, so the solution's
-    relative error is ~1e-5 times the condition number."""
-    rng = np.random.default_rng(3)
+def _two_pattern_problem(rng: np.random.Generator):
+    """Two patterns (the first centred), two dark and four light frames, Z proportional between frames (the case
+    the solver's operator factors exactly), uneven weights: (X, Z, F, w), arrays of (6, 11, 12)."""
     R, H, W = 6, 11, 12
     dark = np.array([1, 1, 0, 0, 0, 0], bool)
     X = [np.ones((R, H, W)), rng.uniform(0.5, 2.0, (R, H, W))]
@@ -45,6 +42,17 @@ def test_coupled_step_equals_dense_least_squares():
     Z = [scale[:, None, None] * np.ones((R, H, W)), np.zeros((R, H, W))]
     F = np.where(dark[:, None, None], 0.0, -rng.uniform(0.8, 1.2, (R, H, W)))
     w = rng.uniform(0.5, 1.5, (R, H, W))
+    return X, Z, F, w
+
+
+def test_coupled_step_equals_dense_least_squares():
+    """With Z proportional between frames (the case the solver's operator factors exactly), the step is the
+    dense constrained least-squares solution; two patterns (one centred), dark and light frames, uneven
+    weights.  Tolerance: the solver runs to a squared residual 1e-20 of the start, so the solution's
+    relative error is ~1e-5 times the condition number."""
+    rng = np.random.default_rng(3)
+    X, Z, F, w = _two_pattern_problem(rng)
+    R, H, W = w.shape
     w[0, 3, 4] = w[1, 3, 4] = 0.0  # a pixel without dark information
     res = rng.standard_normal((R, H, W))
     step = coupled_step(X, Z, F, w, res, [True, False], tol=1e-20, max_iter=500)
@@ -58,13 +66,8 @@ def test_cached_preconditioner_gives_the_same_step_and_follows_the_weights():
     """A cycle's cache (one X, Z, F) gives bit for bit the step computed without it, for every residual, and a
     change of the weights' values in place (misfitting pixels dropped) builds the preconditioner anew."""
     rng = np.random.default_rng(6)
-    R, H, W = 6, 11, 12
-    dark = np.array([1, 1, 0, 0, 0, 0], bool)
-    X = [np.ones((R, H, W)), rng.uniform(0.5, 2.0, (R, H, W))]
-    scale = np.array([0, 0, 1.0, 2.0, 1.0, 0.5])
-    Z = [scale[:, None, None] * np.ones((R, H, W)), np.zeros((R, H, W))]
-    F = np.where(dark[:, None, None], 0.0, -rng.uniform(0.8, 1.2, (R, H, W)))
-    w = rng.uniform(0.5, 1.5, (R, H, W))
+    X, Z, F, w = _two_pattern_problem(rng)
+    R, H, W = w.shape
     cache: dict = {}
     for _ in range(2):
         res = rng.standard_normal((R, H, W))
