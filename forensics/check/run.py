@@ -238,7 +238,35 @@ def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effec
         # opened once, as given (a Dataset keeps how it was opened, e.g. with files outside its folder)
         source = data if isinstance(data, Dataset) else open_dataset(data)
         meas = load_measurements(source, region=region, progress=progress, executor=executor)
+    require_fit_memory(meas)
     return Evidence(meas, rng=rng, n_sim=n_sim, black_level=metadata_black_level(source)), extra
+
+
+#: Peak memory of a check (the fit, the diagnosis and ``--auto``'s steps) per pixel and fitted condition, in
+#: bytes: measured 2.15 KB on the real STL-1001E dark series (19 fitted conditions; 226 MB at 64², 729 MB at
+#: 128², ``--auto``), 1.2 KB on the EMVA 1288 standard series (42 conditions, 3.8 GB at 320 × 240) and 1.3–1.8
+#: KB with 2 conditions (RESULTS_check.md, 24 MP section).  The fit holds whole-frame (conditions, H, W)
+#: arrays; the row-block fit of issue 27 is what would bound it.
+FIT_BYTES_PER_PIXEL_CONDITION = 2200
+
+
+def require_fit_memory(meas: Measurements) -> None:
+    """Refuse, before the fit, a check whose memory estimate (:data:`FIT_BYTES_PER_PIXEL_CONDITION` per pixel
+    and fitted condition) exceeds :func:`~forensics._shared.limits.memory_limit`, naming ``--region``: without
+    it a whole 1 MP dark series (43 GB) ran for many minutes and then died out of memory.
+
+    Raises
+    ------
+    UsageError
+        The estimate exceeds the limit.
+    """
+    from forensics._shared.limits import require_memory
+
+    h, w = meas.shape
+    n = max(len(meas.fitted), 1)
+    require_memory(FIT_BYTES_PER_PIXEL_CONDITION * h * w * n,
+                   f"the model check of {w}×{h} pixels × {n} fitted conditions (--region checks a part of the "
+                   f"frames, e.g. --region {min(h, w, 512)})")
 
 
 def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,

@@ -72,3 +72,19 @@ def test_scene_estimate_edges_and_fills_are_exact_for_planes_at_any_size():
     good[0:3, 0:3] = good[200, 300] = good[h - 1, 100:120] = False
     np.testing.assert_allclose(plane_fill(np.where(good, plane, 0.0), good), plane, rtol=0, atol=1e-8)
     np.testing.assert_allclose(scene_estimate(plane), plane, rtol=0, atol=1e-7)
+
+
+def test_a_check_beyond_the_memory_limit_is_refused_before_the_fit_naming_the_region(cli, folder, monkeypatch,
+                                                                                     tmp_path):
+    """600 × 720 pixels × 2 fitted conditions at 2.2 KB each (the fit's measured peak per pixel and condition)
+    is ≈ 1.8 GiB: under a 1 GiB limit the check says so in one line, names --region and writes no report; the
+    same frames checked on a 64² region (≈ 17 MiB) run."""
+    from forensics._shared.limits import MEMORY_ENV
+
+    monkeypatch.setenv(MEMORY_ENV, "1G")
+    code, _, err = cli("model", "check", folder, "--workers", "1", "--quiet", "--report", tmp_path / "r")
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert "720×600 pixels × 2 fitted conditions" in err and "--region" in err and MEMORY_ENV in err
+    assert not (tmp_path / "r").exists()
+    code, out, err = cli("model", "check", folder, "--region", "64", "--workers", "1", "--quiet", "--json")
+    assert code == 0, err
