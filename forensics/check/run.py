@@ -243,10 +243,10 @@ def prepare(data: Dataset | str | Path | Measurements, add: Sequence[str | Effec
 
 
 #: Peak memory of a check (the fit, the diagnosis and ``--auto``'s steps) per pixel and fitted condition, in
-#: bytes: measured 2.1 KB on the real STL-1001E dark series (19 fitted conditions; 226 MB at 64², 729 MB at
-#: 128², 1,530 MB at 192², ``--auto``), 1.2 KB on the EMVA 1288 standard series (42 conditions, 3.8 GB at 320 × 240) and 1.3–1.8
-#: KB with 2 conditions (RESULTS_check.md, 24 MP section).  The fit holds whole-frame (conditions, H, W)
-#: arrays; the row-block fit of issue 27 is what would bound it.
+#: bytes: measured 2.1 KB on the real STL-1001E dark series (19 fitted conditions, ``--auto``: 226 MB at 64²,
+#: 729 MB at 128², 1,530 MB at 192²), 1.2 KB on the EMVA 1288 standard series (42 conditions, 3.8 GB at
+#: 320 × 240) and 1.3–1.8 KB with 2 conditions (RESULTS_check.md, 24 MP section).  The fit holds whole-frame
+#: (conditions, H, W) arrays; the row-block fit of issue 27 is what would bound it.
 FIT_BYTES_PER_PIXEL_CONDITION = 2200
 
 
