@@ -490,6 +490,7 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
         terminate()
         return
     processes = list((getattr(pool, "_processes", None) or {}).values())
+    manager = getattr(pool, "_executor_manager_thread", None)
     for process in processes:
         with contextlib.suppress(Exception):
             process.terminate()
@@ -497,6 +498,13 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
     for process in processes:
         with contextlib.suppress(Exception):
             process.join(5.0)
+    # The pool's manager thread notices the dead workers and closes its wake-up pipe; if the interpreter exits
+    # meanwhile, concurrent.futures' exit hook writes to that pipe as it closes and prints a traceback under
+    # the command's one line (an unlocked check-then-write in concurrent.futures).  Waiting for the thread
+    # closes the race.
+    if manager is not None:
+        with contextlib.suppress(Exception):
+            manager.join(10.0)
 
 
 def start_local_cluster(workers: int = 2) -> Any:

@@ -156,3 +156,26 @@ def test_signals_wait_for_the_end_of_a_deferred_block():
     assert reached
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # every handler is back as it was
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_stopping_workers_waits_for_the_pools_manager_thread():
+    """After a stop, the pool's manager thread has closed its wake-up pipe: an exit right then prints nothing.
+
+    (Without the wait, the interpreter's exit hook raced the thread closing that pipe and printed a traceback
+    under the command's one line — seen once in CI after SIGTERM.)
+    """
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from forensics._shared.parallel import _stop_workers
+
+    pool = ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("spawn"))
+    futures = [pool.submit(time.sleep, 30) for _ in range(2)]
+    deadline = time.monotonic() + 60
+    while not all(f.running() for f in futures) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    manager = pool._executor_manager_thread
+    started = time.monotonic()
+    _stop_workers(pool)
+    assert not manager.is_alive()
+    assert time.monotonic() - started < 10.0  # the sleeping items were stopped, not waited for
