@@ -63,7 +63,7 @@ def known_effects(design, effect: str) -> list[str]:
 
 
 def run_one(job: tuple[str, int] | tuple[str, int, str]) -> dict:
-    from forensics.check.run import base_model, prepare, resolve_effects, run_check
+    from forensics.check.pipeline import base_model, prepare, resolve_effects, run_check
     from forensics.fixtures.hidden import convention, make_hidden
 
     effect, seed = job[:2]

@@ -14,17 +14,17 @@ The stages, one module each, data flowing one way:
                   model's predictions), ``pixels`` (pixel classes, scene estimates, noise floor, variance
                   bins), ``singles`` (single dark frames: their noise law, cosmic-ray hits, misfits),
                   ``prediction`` (forward models), ``streams`` (Monte-Carlo streams)
-``fit``           :func:`fit_model` → :class:`FittedModel` (``pixelfit``, ``projection``, ``params``: new
-                  effects, never mutated ones)
+``fit``           :func:`fit_model` → :class:`FittedModel` (``pixelfit``; the solvers ``local_solve`` and
+                  ``joint_solve``; ``identifiability``; ``params``: new effects, never mutated ones)
 ``gof``           held-out error per pixel class and each channel's goodness of fit
-``diagnosis``     ``signatures`` and ``scoretests`` of the candidates, ranking and flags; ``design``
-                  warnings
+``diagnosis``     ``signatures`` and ``scoretests`` of the candidates, ranking and flags;
+                  ``frame_advice``: which frames would show what the data cannot
 ``structure``     residual structure no fitted effect explains: row, column and radial profiles and
                   covariate trends of the residual, each tested against noise; the strongest named
                   (:func:`residual_structure` → :class:`StructureResult`)
 ``result``        the result dataclasses (``to_dict()`` for ``--json``); ``darkfigures`` a dark series' fitted
                   law in ADU, ADU/s and e⁻/ADU with intervals (:func:`dark_figures`)
-``run``           :func:`check`, :func:`run_check`, :func:`base_model`, :func:`candidate_names`
+``pipeline``      :func:`check`, :func:`run_check`, :func:`base_model`, :func:`candidate_names`
 ``select``        forward selection of several effects: :func:`check_auto`, :func:`forward_select` →
                   :class:`SelectionResult` (the path base → +A → +B …)
 
@@ -49,7 +49,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "Candidate", "ChannelTest", "CheckResult", "CheckRow", "ParamEstimate", "PatternEstimate", "PlotData",
             "StructureResult", "StructureTest",
         ],
-        "run": ["base_model", "candidate_names", "check", "resolve_effects", "run_check"],
+        "pipeline": ["base_model", "candidate_names", "check", "resolve_effects", "run_check"],
         "scene": ["KERNEL", "KERNEL_VAR", "loo_quadratic_kernel", "scene_estimate"],
         "select": ["Attempt", "SelectionResult", "Step", "check_auto", "forward_select"],
         "structure": ["residual_structure"],

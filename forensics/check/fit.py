@@ -18,13 +18,13 @@ from scipy import optimize
 from forensics.check.arrivals import DefectCounts
 from forensics.check.classes import NORMAL
 from forensics.check.evidence import Evidence
-from forensics.check.identify import bounded_step, estimates
+from forensics.check.identifiability import bounded_step, estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
 from forensics.check.prediction import SCENE_SHIFT
 from forensics.check.pixels import PixelData, VarianceBins, pattern_size
 from forensics.check.prediction import predicted_variance
-from forensics.check.projection import PixelProjector, shrink_local
+from forensics.check.local_solve import PixelProjector, shrink_local
 from forensics.check.measurements import Group
 from forensics.check.result import ParamEstimate, PatternEstimate
 from forensics.check.streams import NULL_SIMULATIONS, PATTERN_SIZE_STREAM
@@ -111,11 +111,10 @@ def at_null(effect: Effect) -> Effect:
 def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cycles: int) -> FittedModel:
     effects = [at_null(e) for e in SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects),
                                                t0=float(ev.times[0])).effects]  # in stage order
-    params: list[ParamEstimate] = []
     # ---------------------------------------------------------------- arrivals
     a_idx = [i for i, e in enumerate(effects) if e.stage == Stage.ARRIVAL]
-    arrivals, expected, arrival_free, growth_jac = fit_arrivals(ev, ev.defects, [effects[i] for i in a_idx], params)
-    for i, e in zip(a_idx, arrivals):
+    arrival = fit_arrivals(ev, ev.defects, [effects[i] for i in a_idx])
+    for i, e in zip(a_idx, arrival.effects):
         effects[i] = e
     # ---------------------------------------------------------------- pixel channel
     device = Device(model=SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=effects, t0=float(ev.times[0])),
@@ -134,11 +133,11 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         effects[i] = bespoke_fit(effects[i], ev)
     # a first look at the noise (the pixel channel's censored means near 0 and full scale depend on it)
     n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
-    first, _, _ = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx],
-                               on_device(device, effects), [])
-    for i, e in zip(n_idx, first):
+    first = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx],
+                         on_device(device, effects))
+    for i, e in zip(n_idx, first.effects):
         effects[i] = e
-    pix = fit_pixels(ev, pixels, device, effects, p_idx, params, max_cycles)
+    pix = fit_pixels(ev, pixels, device, effects, p_idx, max_cycles)
     effects = pix.effects
     projector = PixelProjector([c * np.sqrt(pixels.weight) for c in pix.nuisance],
                                [p.random_effect for _, p in pix.local])
@@ -150,20 +149,22 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         effects[i] = bespoke_fit(effects[i], ev)
     # the noise laws see the fitted pixel effects (an analog gain amplifies the noise before it)
     device = on_device(device, effects)
-    noise, vpred, vjac = fit_variance(pixels.bins, ev.rgroups, [effects[i] for i in n_idx], device, params)
-    for i, e in zip(n_idx, noise):
+    noise = fit_variance(pixels.bins, ev.rgroups, [effects[i] for i in n_idx], device)
+    for i, e in zip(n_idx, noise.effects):
         effects[i] = e
     device = on_device(device, effects)
     if SCENE_SHIFT in device.state:  # the shrunk patterns' neighbour term
         device.state[SCENE_SHIFT] = ev.predictor.scene_shift(device, pixels)
     mu_b = ev.predictor.predict(device, pixels, "b")
     sims, spatial_null = {}, None
+    arrivals, expected = arrival.effects, arrival.expected
     if arrivals and len(ev.times) >= 2:
         sims, spatial_null = ev.simulations(
             NULL_SIMULATIONS, arrivals,
             lambda: ev.defects.simulate_null(arrivals, expected, ev.streams.stream(NULL_SIMULATIONS), ev.streams.n_sim))
+    params = [*arrival.params, *pix.params, *noise.params]  # the order of the stages
     return FittedModel(device, effects, pixels, pix.mu_a, mu_b, pix.nuisance, projector, params, patterns, expected,
-                       arrival_free, growth_jac, vpred, vjac, spatial_null, sims,
+                       arrival.free, arrival.jacobian, noise.predicted, noise.jacobian, spatial_null, sims,
                        estimation_variance(pix.local, pix.nuisance, pix.local_var, patterns, effects))
 
 
@@ -191,15 +192,23 @@ def _log_scale(effect: Effect, name: str) -> bool:
     return lo >= 0 and bool(np.isinf(hi))
 
 
-def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect], params: list[ParamEstimate]):
-    """Fit the arrival effects to the count increments (Poisson likelihood; bespoke fits first).
+@dataclass(frozen=True)
+class ArrivalFit:
+    """The growth channel's fit (:func:`fit_arrivals`)."""
 
-    Returns (fitted arrival effects, expected counts, the free parameters as (effect, name), the Jacobian of the
-    expected increments by the free parameters) and appends the estimates to ``params``.
-    """
+    effects: list[Effect]  #: the fitted arrival effects
+    expected: dict[int, np.ndarray]  #: expected defect counts per kind at every epoch
+    free: list[tuple[str, str]]  #: the free parameters, as (effect, name)
+    jacobian: np.ndarray | None  #: of the expected increments by the free parameters
+    params: list[ParamEstimate]  #: their estimates (and the effects' self-fitted values)
+
+
+def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect]) -> ArrivalFit:
+    """Fit the arrival effects to the count increments (Poisson likelihood; bespoke fits first)."""
     times = counts.times
     if not arrivals:
-        return [], {PARTIAL: np.zeros(len(times)), STUCK: np.zeros(len(times))}, [], None
+        return ArrivalFit([], {PARTIAL: np.zeros(len(times)), STUCK: np.zeros(len(times))}, [], None, [])
+    params: list[ParamEstimate] = []
     arr = list(arrivals)
     free = [(j, n) for j, e in enumerate(arr) for n in e.free_params()]
 
@@ -256,7 +265,7 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
     for e in arr:
         for n in e.self_fitted:
             params.append(ParamEstimate(e.key, n, float(getattr(e, n)), None, unit(e, n)))
-    return arr, expected, [(arr[j].key, n) for j, n in free], jac
+    return ArrivalFit(arr, expected, [(arr[j].key, n) for j, n in free], jac, params)
 
 
 def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], local: list,
@@ -323,7 +332,7 @@ def shrink_random_effects(weight: np.ndarray, local: list, derivatives: list[np.
     """Move the pixel-local patterns' fitted values, in place, to the best linear unbiased predictor: each
     random-effect pattern (:attr:`~forensics.sensor.model.Pattern.random_effect`) gets a zero-mean prior of
     its fitted variance τ² (the values' mean square less their estimation noise), the other patterns none
-    (:func:`~forensics.check.projection.shrink_local`).
+    (:func:`~forensics.check.local_solve.shrink_local`).
 
     Why: a pattern fitted from one half of the frames carries that half's noise, and the held-out half is
     predicted from it.  Where the pattern is weak against the noise (a JPEG flat's PRNU with five frames a
@@ -356,8 +365,17 @@ def shrink_random_effects(weight: np.ndarray, local: list, derivatives: list[np.
 VARIANCE_SETTLED = 1e-6
 
 
-def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effect], device: Device,
-                 params: list[ParamEstimate]) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
+@dataclass(frozen=True)
+class NoiseFit:
+    """The variance channel's fit (:func:`fit_variance`)."""
+
+    effects: list[Effect]  #: the fitted noise effects
+    predicted: np.ndarray  #: predicted variance per bin
+    jacobian: np.ndarray | None  #: of the log prediction by the free parameters
+    params: list[ParamEstimate]  #: their estimates
+
+
+def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effect], device: Device) -> NoiseFit:
     """Fit the noise effects to the log binned variances (weighted Gauss–Newton with step halving).
 
     Two starts: the effects as given (the null values: the smaller model), and each free parameter that sits
@@ -365,10 +383,9 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
     smaller model.  Why a second start: a noise σ enters the variance as σ², whose derivative is 0 at σ = 0,
     so a fit started there never leaves it.
 
-    Returns (fitted noise effects, predicted variance per bin, Jacobian of the log prediction) and appends the
-    estimates to ``params``.
     """
     free = [(j, n) for j, e in enumerate(noise) for n in e.free_params()]
+    params: list[ParamEstimate] = []
     y = np.log(bins.observed)
     w = bins.df / 2.0
     jac = None
@@ -426,5 +443,5 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
         fits = [descend(start) for start in starts]
         noise, _, converged = min(fits, key=lambda f: f[1])
         jac = jacobian(noise, log_pred(noise))
-        params += estimates(noise, free, (jac * w) @ jac.T, converged)
-    return noise, predicted_variance(bins, rgroups, noise, device), jac
+        params = estimates(noise, free, (jac * w) @ jac.T, converged)
+    return NoiseFit(noise, predicted_variance(bins, rgroups, noise, device), jac, params)

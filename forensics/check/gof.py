@@ -1,7 +1,7 @@
 """Goodness of fit: the held-out error per pixel class and each channel's test of the fitted model.
 
-Each function takes the evidence and a :class:`~forensics.check.fit.FittedModel`, appends its rows to the
-table of checks and returns its numbers; nothing is refitted here.
+Each function takes the evidence and a :class:`~forensics.check.fit.FittedModel` and returns its numbers and
+its rows of the table of checks (:class:`~forensics.check.result.CheckRow`); nothing is refitted here.
 """
 from __future__ import annotations
 
@@ -50,8 +50,9 @@ def class_errors(ev: Evidence, fitted: FittedModel, r2: np.ndarray, floor: np.nd
     return out
 
 
-def pixel_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float, np.ndarray]:
+def pixel_gof(ev: Evidence, fitted: FittedModel) -> tuple[float, np.ndarray, list[CheckRow]]:
     """Goodness of fit of the pixel channel: binned residual means and per-pixel consistency (in-sample)."""
+    rows: list[CheckRow] = []
     px = fitted.pixels
     meas = ev.meas
     sw = np.sqrt(px.weight)
@@ -77,8 +78,8 @@ def pixel_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tupl
             nb += 1
     p_a = float(stats.chi2.sf(chi, nb)) if nb else 1.0
     if nb:
-        checks.append(CheckRow("pixel: mean residual per condition (partially stuck; normal in dark frames), χ²/df", chi / nb, 1.0,
-                               (chi - nb) / math.sqrt(2 * nb)))
+        rows.append(CheckRow("pixel: mean residual per condition (partially stuck; normal in dark frames), χ²/df", chi / nb, 1.0,
+                             (chi - nb) / math.sqrt(2 * nb)))
     # (b) per-pixel consistency: component along the constant, against the within-pixel scatter
     ones = fitted.projector.project(np.where(keep, sw, 0.0))
     norm = np.sqrt(np.sum(ones**2, axis=0))
@@ -99,15 +100,16 @@ def pixel_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tupl
         ratio = between / max(within, 1e-12)
         dfw = float(df_within[use].sum())
         p_b = float(stats.f.sf(ratio, n_pix, dfw))
-        checks.append(CheckRow("pixel: per-pixel consistency (between / within)", ratio, 1.0,
-                               (ratio - 1) / math.sqrt(2 / n_pix + 2 / dfw)))
+        rows.append(CheckRow("pixel: per-pixel consistency (between / within)", ratio, 1.0,
+                             (ratio - 1) / math.sqrt(2 / n_pix + 2 / dfw)))
     else:
         p_b = 1.0
-    return min(1.0, 2 * min(p_a, p_b)), consistency
+    return min(1.0, 2 * min(p_a, p_b)), consistency, rows
 
 
-def covariate_checks(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> dict[str, dict[str, Any]]:
+def covariate_checks(ev: Evidence, fitted: FittedModel) -> tuple[dict[str, dict[str, Any]], list[CheckRow]]:
     """Held-out residuals against every covariate: binned means per class, and a weighted slope test."""
+    rows: list[CheckRow] = []
     px = fitted.pixels
     meas = ev.meas
     r = meas.mean_b - fitted.mu_b
@@ -148,35 +150,37 @@ def covariate_checks(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) 
             cc = (cv - cv.mean()) / cv.std()
             slope_z = float(np.sum(cc * zv) / math.sqrt(np.sum(cc * cc)))
             slope = float(np.sum((cv - cv.mean()) * rv) / np.sum((cv - cv.mean()) ** 2))
-            checks.append(CheckRow(f"pixel: {klass} residual slope vs {cname}", slope, 0.0, slope_z))
+            rows.append(CheckRow(f"pixel: {klass} residual slope vs {cname}", slope, 0.0, slope_z))
         out[cname] = entry
-    return out
+    return out, rows
 
 
-def variance_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float | None, float | None]:
+def variance_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, float | None, list[CheckRow]]:
+    rows: list[CheckRow] = []
     px = fitted.pixels
     if not len(px.bins.observed):
-        return None, None
+        return None, None, rows
     e = np.log(px.bins.observed) - np.log(fitted.variance_pred)
     w = px.bins.df / 2.0
     q = 0 if fitted.variance_jac is None else fitted.variance_jac.shape[0]
     chi = float(np.sum(w * e * e))
     df = max(len(e) - q, 1)
-    checks.append(CheckRow("variance: mean ln(observed/predicted)", float(np.average(e, weights=w)), 0.0,
-                           float(np.sum(w * e) / math.sqrt(np.sum(w)))))
+    rows.append(CheckRow("variance: mean ln(observed/predicted)", float(np.average(e, weights=w)), 0.0,
+                         float(np.sum(w * e) / math.sqrt(np.sum(w)))))
     lv = px.bins.level
     if np.ptp(lv) > 0:
         c = (lv - np.average(lv, weights=w))
         slope_z = float(np.sum(w * c * e) / math.sqrt(np.sum(w * c * c)))
-        checks.append(CheckRow("variance: slope of ln(observed/predicted) vs level (per 1000 DN)",
-                               float(np.sum(w * c * e) / np.sum(w * c * c) * 1000), 0.0, slope_z))
-    checks.append(CheckRow("variance: χ²/df of ln variance", chi / df, 1.0, (chi - df) / math.sqrt(2 * df)))
-    return float(np.sqrt(np.mean(e * e))), float(stats.chi2.sf(chi, df))
+        rows.append(CheckRow("variance: slope of ln(observed/predicted) vs level (per 1000 DN)",
+                             float(np.sum(w * c * e) / np.sum(w * c * c) * 1000), 0.0, slope_z))
+    rows.append(CheckRow("variance: χ²/df of ln variance", chi / df, 1.0, (chi - df) / math.sqrt(2 * df)))
+    return float(np.sqrt(np.mean(e * e))), float(stats.chi2.sf(chi, df)), rows
 
 
-def growth_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float | None, float | None]:
+def growth_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, float | None, list[CheckRow]]:
+    rows: list[CheckRow] = []
     if len(ev.times) < 3 or not fitted.arrival_effects():
-        return None, None
+        return None, None, rows
     obs, exp = ev.defects.increments(fitted.expected)
     used = (exp > 1e-9) | (obs > 0)
     n_free = len(fitted.arrival_free)
@@ -188,34 +192,35 @@ def growth_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tup
     p = float(stats.chi2.sf(dev / scale, df))
     pearson = float(np.sum((obs[used] - exp[used]) ** 2 / np.maximum(exp[used], 1e-9)))
     pred_disp = float(np.mean(fitted.sims["pearson"])) / df if sims is not None else 1.0
-    checks.append(CheckRow("growth: Poisson deviance / df", dev / df, scale, (dev / scale - df) / math.sqrt(2 * df)))
-    checks.append(CheckRow("growth: dispersion index (Pearson χ²/df)", pearson / df, pred_disp,
-                           (pearson / pred_disp - df) / math.sqrt(2 * df) if pred_disp > 0 else None))
+    rows.append(CheckRow("growth: Poisson deviance / df", dev / df, scale, (dev / scale - df) / math.sqrt(2 * df)))
+    rows.append(CheckRow("growth: dispersion index (Pearson χ²/df)", pearson / df, pred_disp,
+                         (pearson / pred_disp - df) / math.sqrt(2 * df) if pred_disp > 0 else None))
     u = laplace_trend_z(np.diff(ev.defects.counts[PARTIAL]), ev.times)
     if u is not None:
-        checks.append(CheckRow("growth: Laplace trend z (partially stuck arrivals)", u, 0.0, u))
-    return dev / df, p
+        rows.append(CheckRow("growth: Laplace trend z (partially stuck arrivals)", u, 0.0, u))
+    return dev / df, p, rows
 
 
-def spatial_gof(ev: Evidence, fitted: FittedModel, checks: list[CheckRow]) -> tuple[float | None, dict[str, Any]]:
+def spatial_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, dict[str, Any], list[CheckRow]]:
+    rows: list[CheckRow] = []
     info: dict[str, Any] = {}
     if len(ev.defects.sites) < 10:
-        return None, info
+        return None, info, rows
     l_obs = ev.defects.ripley_l(ev.defects.sites)
     ce = sp.clark_evans(ev.defects.sites[:, 1], ev.defects.sites[:, 0], ev.window)
     info.update({"radii": sp.DEFAULT_RADII, "observed": l_obs})
     null = fitted.spatial_null
     if null is None:
-        checks.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
-        return None, info
+        rows.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
+        return None, info, rows
     m0, s0, sims = null["mean"], null["sd"], null["sims"]
     dev_obs = float(np.max(np.abs(l_obs - m0) / s0))
     dev_sim = np.max(np.abs(sims - m0) / s0, axis=1)
     p = float((1 + np.sum(dev_sim >= dev_obs)) / (1 + len(dev_sim)))
     info.update({"mean": m0, "lo": np.quantile(sims, 0.025, axis=0), "hi": np.quantile(sims, 0.975, axis=0),
                  "min": sims.min(0), "max": sims.max(0)})
-    checks.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
+    rows.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
     j = int(np.argmax(np.abs(l_obs - m0) / s0))
-    checks.append(CheckRow(f"spatial: Ripley L at r = {sp.DEFAULT_RADII[j]:g} px (largest deviation)",
-                           float(l_obs[j]), float(m0[j]), float((l_obs[j] - m0[j]) / s0[j])))
-    return p, info
+    rows.append(CheckRow(f"spatial: Ripley L at r = {sp.DEFAULT_RADII[j]:g} px (largest deviation)",
+                         float(l_obs[j]), float(m0[j]), float((l_obs[j] - m0[j]) / s0[j])))
+    return p, info, rows

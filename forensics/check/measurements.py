@@ -86,7 +86,7 @@ class NoiseTraits:
     (≈ 0 for a raw sensor's noise; demosaicing and JPEG compression correlate it), from the differences of
     consecutive frames of a condition, high-passed so that the scene and level changes drop out.  ``blocks``
     holds, per repeated condition, the mean of every frame over square blocks ``(n_frames, n_blocks)``: the
-    frames' level changes against the noise of a frame mean (:func:`forensics.check.design.level_drift`).
+    frames' level changes against the noise of a frame mean (:func:`forensics.check.frame_advice.level_drift`).
     """
 
     lag1: float | None

@@ -7,13 +7,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from forensics.check.coupled import coupled_forward, coupled_step
+from forensics.check.joint_solve import coupled_forward, coupled_step
 from forensics.check.evidence import Evidence
-from forensics.check.identify import bounded_step, estimates
+from forensics.check.identifiability import bounded_step, estimates
 from forensics.check.params import on_device, with_clipped_param, with_param
 from forensics.check.pixels import PixelData
 from forensics.check.prediction import FROZEN_REFILL, SCENE_SHIFT
-from forensics.check.projection import PixelProjector, solve_local
+from forensics.check.local_solve import PixelProjector, solve_local
 from forensics.check.result import ParamEstimate
 from forensics.sensor.model import Device, Effect, Pattern
 
@@ -28,6 +28,7 @@ class PixelFit:
     local: list[tuple[int, Pattern]]  #: (effect index, pattern) of the pixel-local patterns
     local_var: np.ndarray | None  #: variances of their fitted values
     pattern_weight: np.ndarray  #: the weights they were solved with (:attr:`PixelData.pattern_weight`, less misfits)
+    params: list[ParamEstimate]  #: the global parameters' estimates
 
 
 def used_blocks(pat: Pattern) -> np.ndarray:
@@ -116,13 +117,13 @@ def pattern_derivative(predict, device: Device, pat: Pattern, base: np.ndarray,
 
 
 def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequence[Effect], pixel_idx: list[int],
-               params: list[ParamEstimate], max_cycles: int) -> PixelFit:
+               max_cycles: int) -> PixelFit:
     """Fit the pixel effects ``effects[pixel_idx]`` to the first half of the repeats.
 
     Cycles of: pixel-local patterns jointly per pixel; other patterns block by block; global parameters by
     profiled Gauss–Newton (the pixel-local patterns projected out) with step halving — until χ² settles.
-    The patterns are fitted in place in ``device``'s state (the fit's own device); parameters make new
-    effects.  Appends the global parameters' estimates to ``params``.
+    The patterns are fitted in place in ``device``'s state (the fit's own device, made for this fit by
+    :func:`~forensics.check.fit.fit_model`); parameters make new effects.
     """
     y = ev.meas.mean_a
     w = pixels.weight
@@ -226,16 +227,17 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         # pixels that are never scored (the border) carry their values for the neighbours' scene term only: not
         # part of the patterns' summaries
         local_var[:, ~np.any(w > 0, axis=0)] = np.nan
+    params: list[ParamEstimate] = []
     if glob:
         extra = _pattern_mean_covariance(H, cross, local, centred, local_var)
-        params += estimates(effects, glob, H, converged and np.isfinite(chi), extra)
-    return PixelFit(effects, mu, X_local, local, local_var, wp)
+        params = estimates(effects, glob, H, converged and np.isfinite(chi), extra)
+    return PixelFit(effects, mu, X_local, local, local_var, wp, params)
 
 
 def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, raw: np.ndarray,
               refill: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
     """The derivatives that couple the pixels through their neighbours' scene estimates
-    (:func:`~forensics.check.coupled.coupled_step`): per pixel-local pattern Z, how a pixel's own values move
+    (:func:`~forensics.check.joint_solve.coupled_step`): per pixel-local pattern Z, how a pixel's own values move
     what it subtracts from its neighbours' estimates — its deviation at zero light (the neighbour term), less,
     at a known defect, its refill (what a typical pixel would have read there, which carries the pixel's
     patterns back in: at a stuck pixel the two cancel); F, the prediction by the neighbour term (light frames).
@@ -268,7 +270,7 @@ def _coupled_refit(consistent, dev: Device, local: list, X_local: list[np.ndarra
                    F: np.ndarray, cache: dict, wp: np.ndarray, y: np.ndarray, mu: np.ndarray,
                    centred: list[bool]) -> np.ndarray:
     """One joint Gauss–Newton step of the pixel-local patterns with their neighbours' scene term
-    (:func:`~forensics.check.coupled.coupled_step`) from the consistent prediction ``mu``, halved (at most 4
+    (:func:`~forensics.check.joint_solve.coupled_step`) from the consistent prediction ``mu``, halved (at most 4
     times) until χ² does not increase (else the patterns stay); returns the consistent prediction."""
     step = coupled_step(X_local, Z, F, wp, y - mu, centred, cache=cache)
     chi_old = float(np.sum(wp * (y - mu) ** 2))

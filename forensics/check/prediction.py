@@ -323,7 +323,8 @@ def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effec
         elec = bins.bin_means(r, ctx.electronic_offset)
         out[sel] += noise_variance(noise_effects, bins.level[sel], ctx, elec)
         if bins.spread is not None and bins.full_scale is not None:
-            near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, out, elec)
+            at, variance = near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, elec)
+            out[at] = variance
     return np.maximum(out, 1e-12)
 
 
@@ -341,9 +342,9 @@ def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: Fram
 
 
 def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_effects: Sequence[Effect],
-               out: np.ndarray, electronic: np.ndarray | None = None, iterations: int = 60) -> None:
-    """Predict ``out[idx]`` for the bins near a bound (those with a ``spread``; see
-    :func:`~forensics.check.pixels.variance_bins`) from the quantised, clipped readout.
+               electronic: np.ndarray | None = None, iterations: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """The predicted variance of those bins ``idx`` that lie near a bound (those with a ``spread``; see
+    :func:`~forensics.check.pixels.variance_bins`), from the quantised, clipped readout: ``(bins, variances)``.
 
     Each scene level of the bin's spread (a leave-one-out mean of the neighbours' readouts, so the mean of the
     readout y = rint(clip(x, 0, full scale)) of a pixel there) gives the latent mean μ, found by
@@ -355,7 +356,7 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
     near = np.all(np.isfinite(spread), axis=1)
     lo, hi = 0, round(float(bins.full_scale))
     if not near.any() or hi < 3:
-        return
+        return idx[:0], np.zeros(0)
     m = spread[near]
     elec = (np.zeros(len(idx)) if electronic is None else np.asarray(electronic, float))[near][:, None]
     s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx, elec) + QUANT_VAR)
@@ -367,7 +368,7 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
 
     mu = bracketed_root(excess, (m - 10.0 * s - 2.0).ravel(), (m + 10.0 * s + 2.0).ravel(), iterations).reshape(m.shape)
     _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx, elec)), lo, hi, truncate=True)
-    out[idx[near]] = var.mean(axis=1)
+    return idx[near], var.mean(axis=1)
 
 
 def bracketed_root(f, a: np.ndarray, b: np.ndarray, iterations: int = 60, xtol: float = 1e-12) -> np.ndarray:

@@ -33,7 +33,7 @@ from forensics.check.classes import CLASSES
 from forensics.check.evidence import Evidence
 from forensics.check.measurements import Measurements, Region
 from forensics.check.result import CheckResult
-from forensics.check.run import base_model, prepare, resolve_effects, run_check
+from forensics.check.pipeline import base_model, prepare, resolve_effects, run_check
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import Effect
 
@@ -242,7 +242,7 @@ def forward_select(ev: Evidence, start_effects: Sequence[Effect], max_steps: int
     ev
         Evidence built once from the data; every step is fitted to it.
     start_effects
-        The starting model (usually :func:`~forensics.check.run.base_model` plus the user's ``--add``);
+        The starting model (usually :func:`~forensics.check.pipeline.base_model` plus the user's ``--add``);
         not changed.
     max_steps
         At most this many effects are added.
@@ -299,7 +299,7 @@ def check_auto(data: Dataset | str | Path | Measurements, add: Sequence[str | Ef
         Dataset (or its folder, or prepared :class:`Measurements`).
     add
         Effects the starting model has on top of the base model (names, ``module:Class``, ``file.py:Class``
-        or instances, as in :func:`~forensics.check.run.check`).
+        or instances, as in :func:`~forensics.check.pipeline.check`).
     rng
         Generator or integer seed of the Monte-Carlo simulations (the same streams at every step).
     max_steps

@@ -19,8 +19,10 @@ def test_near_bound_matches_the_truncated_readout():
     spread = np.array([np.full(16, level), np.full(16, np.nan)])
     bins = VarianceBins(np.array([0, 0]), np.array([1.07, 80.0]), np.array([observed, 0.57]),
                         np.array([100.0, 100.0]), spread, fs)
+    at, variance = near_bound(bins, np.array([0, 1]), None, noise)
+    assert list(at) == [0]  # the second bin, away from the bounds, is not predicted here
     out = np.array([sigma**2 + QUANT_VAR] * 2)
-    near_bound(bins, np.array([0, 1]), None, noise, out)
+    out[at] = variance
     se = np.sqrt(np.var(kept.var(axis=1, ddof=1)) / len(kept))
     assert abs(out[0] - observed) < 5 * se
     assert out[0] < 0.2 * (sigma**2 + QUANT_VAR)  # the naive prediction is an order of magnitude off

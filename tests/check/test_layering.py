@@ -16,7 +16,7 @@ def test_sensor_does_not_import_check_and_check_does_not_import_plotting():
     # every module of the checker, loaded explicitly (the package's public names load lazily)
     loaded = _modules_after("import importlib, pkgutil, forensics.sensor, forensics.check as c; "
                             "[importlib.import_module('forensics.check.' + m.name) for m in pkgutil.iter_modules(c.__path__)]")
-    assert {"forensics.check.run", "forensics.check.select", "forensics.check.structure"} <= loaded
+    assert {"forensics.check.pipeline", "forensics.check.select", "forensics.check.structure"} <= loaded
     assert not any(m.startswith(("matplotlib", "forensics.report")) for m in loaded)
 
 

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from forensics.check.evidence import Evidence
 from forensics.check.fit import at_null
 from forensics.check.measurements import load_measurements
-from forensics.check.run import base_model, run_check
+from forensics.check.pipeline import base_model, run_check
 from forensics.fixtures.hidden import Design, make_hidden
 from forensics.sensor.model import make_effect
 

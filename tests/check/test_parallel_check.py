@@ -14,7 +14,7 @@ from forensics.fixtures.hidden import Design, make_hidden, make_photographs
 
 from forensics._shared.parallel import Executor
 from forensics.check import check, load_measurements
-from forensics.check.run import fit_executor
+from forensics.check.pipeline import fit_executor
 from forensics.sensor.model import make_effect
 
 #: 48×64 frames over three epochs: 40 conditions of two frames, a check in about two seconds.

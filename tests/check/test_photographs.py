@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from forensics.check.measurements import PHOTOGRAPHS_NOTE, block_means, different_scenes
-from forensics.check.run import base_model, prepare, run_check
+from forensics.check.pipeline import base_model, prepare, run_check
 from forensics.fixtures.hidden import Design, apply_convention, hidden_effects, hidden_model, make_photographs
 from forensics._shared.rng import keyed_generator
 from forensics.sensor.scenes import scene

@@ -3,7 +3,7 @@
 The neighbours' scene estimates refill a known defect with what a typical pixel would have read there, which
 carries the defect pixel's own patterns: perturbing every pixel at once, a pixel next to a stuck defect read
 the defect's change through its scene estimate as its own — five times its true derivative after the onset,
-and the joint pattern solve (:mod:`forensics.check.coupled`) stalled.  With the refills held fixed the
+and the joint pattern solve (:mod:`forensics.check.joint_solve`) stalled.  With the refills held fixed the
 all-at-once derivative is each pixel's own, as perturbing that pixel alone gives it.
 """
 import dataclasses
@@ -14,7 +14,7 @@ import pytest
 from forensics.check.classes import STK
 from forensics.check.fit import fit_model
 from forensics.check.pixelfit import pattern_derivative
-from forensics.check.run import base_model, prepare
+from forensics.check.pipeline import base_model, prepare
 from forensics.fixtures.hidden import convention, make_hidden
 
 

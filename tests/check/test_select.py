@@ -21,7 +21,7 @@ from forensics.fixtures.hidden import (
 import forensics.check.select as sel_mod
 from forensics.check import SelectionResult, check_auto, forward_select
 from forensics.check.result import Candidate, CheckResult
-from forensics.check.run import base_model
+from forensics.check.pipeline import base_model
 
 #: Two hidden effects the base check flags, and a seed where forward selection finds exactly them
 #: (measured: 10/10 seeds 1–10 for this combination, see benchmarks/sweep_check.py --combo).

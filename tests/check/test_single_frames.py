@@ -13,7 +13,7 @@ import pytest
 
 from forensics.check import check
 from forensics.check.classes import NORMAL
-from forensics.check.run import prepare
+from forensics.check.pipeline import prepare
 from forensics.fixtures.darkseries import DarkSeriesDesign, make_dark_series
 from forensics.io.dataset import open_dataset
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from forensics.check.params import unit
-from forensics.check.projection import scaled_pinv
+from forensics.check.local_solve import scaled_pinv
 from forensics.check.result import ParamEstimate
 from forensics.sensor.model import Effect
 
@@ -97,7 +97,7 @@ def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], inform
               converged: bool, extra_cov: np.ndarray | None = None) -> list[ParamEstimate]:
     """Estimates of the ``free`` parameters ``(effect index, name)`` with standard errors from their information
     matrix (plus ``extra_cov``, variance from outside the fit's own noise); parameters the data do not
-    determine are reported as not identifiable (:mod:`.identify`)."""
+    determine are reported as not identifiable (:mod:`.identifiability`)."""
     names = [f"{effects[j].key}.{n}" for j, n in free]
     ident = identify(information, names, [float(getattr(effects[j], n)) for j, n in free])
     out = []

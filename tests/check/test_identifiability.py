@@ -1,11 +1,11 @@
-"""Which parameters the data determine (forensics.check.identify), and the black level the check fits."""
+"""Which parameters the data determine (forensics.check.identifiability), and the black level the check fits."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from forensics.check.identify import identify
-from forensics.check.run import base_model, prepare, resolve_effects, run_check
+from forensics.check.identifiability import identify
+from forensics.check.pipeline import base_model, prepare, resolve_effects, run_check
 from forensics.fixtures.hidden import Design, make_hidden
 
 
@@ -62,7 +62,7 @@ def test_a_known_black_level_is_not_fitted(dark_framed):
 
 def test_black_level_from_the_manifest(tmp_path):
     from forensics._shared.errors import InputError
-    from forensics.check.run import metadata_black_level
+    from forensics.check.pipeline import metadata_black_level
     from forensics.io.dataset import write_manifest
     from forensics.io.images import write_image
 
@@ -77,7 +77,7 @@ def test_black_level_from_the_manifest(tmp_path):
 
 
 def test_bounded_step_holds_a_parameter_at_its_bound_and_solves_the_others():
-    from forensics.check.identify import bounded_step
+    from forensics.check.identifiability import bounded_step
 
     H = np.array([[2.0, 0.5], [0.5, 1.0]])
     g = np.array([-3.0, 1.0])  # the unconstrained step takes the first below its bound 0
@@ -89,7 +89,7 @@ def test_bounded_step_holds_a_parameter_at_its_bound_and_solves_the_others():
 def test_bounded_step_does_not_move_along_a_direction_the_data_do_not_determine():
     """Two collinear columns (b = 2a) and one the data carry no information on: the step reproduces the
     least-squares fit without the ±10³ split an unscaled solve of the near-singular system makes."""
-    from forensics.check.identify import bounded_step
+    from forensics.check.identifiability import bounded_step
 
     rng = np.random.default_rng(0)
     a = rng.standard_normal(50)
@@ -105,7 +105,7 @@ def test_bounded_step_does_not_move_along_a_direction_the_data_do_not_determine(
 def test_a_parameter_on_its_bound_reports_a_one_sided_limit():
     """A noise σ fitted to 0 (its lower bound) is not "0 ± s": its 95 % limit is one-sided, 0 + 1.645·SE (the
     boundary likelihood ratio is ½χ²₀ + ½χ²₁); a parameter inside its range keeps its symmetric SE."""
-    from forensics.check.identify import ONE_SIDED_95, estimates
+    from forensics.check.identifiability import ONE_SIDED_95, estimates
     from forensics.sensor.effects import ReadNoise
 
     H = np.array([[4.0]])

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from forensics.check.projection import common_mode, dead_columns, normal_matrix, scaled_pinv
+from forensics.check.local_solve import common_mode, dead_columns, normal_matrix, scaled_pinv
 from forensics.check.scene import kernel_estimate, kernel_transpose
 
 #: Conjugate gradients stop when the preconditioned residual's squared norm fell by this factor: the step is

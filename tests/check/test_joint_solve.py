@@ -1,7 +1,7 @@
-"""The joint solve of the pixel-local patterns with the scene kernel's coupling (forensics.check.coupled)."""
+"""The joint solve of the pixel-local patterns with the scene kernel's coupling (forensics.check.joint_solve)."""
 import numpy as np
 
-from forensics.check.coupled import coupled_step
+from forensics.check.joint_solve import coupled_step
 from forensics.check.scene import kernel_estimate, kernel_transpose
 
 

@@ -22,7 +22,7 @@ from forensics._shared.errors import UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.classes import CLASSES
-from forensics.check.design import design_warnings, light_levels
+from forensics.check.frame_advice import design_warnings, light_levels
 from forensics.check.diagnosis import diagnose
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel, fit_model
@@ -105,20 +105,19 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
     """Fit ``effects`` to prepared evidence, score, and diagnose (``effects`` are left unchanged)."""
     fitted = fit_model(ev, effects)
     px = fitted.pixels
-    checks: list[CheckRow] = []
     r2, floor = heldout_terms(ev, fitted)
     classes = class_errors(ev, fitted, r2, floor)
     vals = [v for v in classes.values() if v is not None]
-    gof_pixel, consistency = pixel_gof(ev, fitted, checks)
-    covariates = covariate_checks(ev, fitted, checks)
-    err_var, gof_var = variance_gof(ev, fitted, checks)
-    err_growth, gof_growth = growth_gof(ev, fitted, checks)
-    gof_spatial, ripley = spatial_gof(ev, fitted, checks)
-    for name, value in classes.items():
-        if value is not None:
-            n = int(np.sum(ev.usable & (px.classes == CLASSES.index(name))))
-            checks.insert(0, CheckRow(f"pixel: held-out error² ({name}, {n} pixel means)", value**2, 1.0,
-                                      (value**2 - 1) / math.sqrt(2 / max(n, 1))))
+    gof_pixel, consistency, pixel_rows = pixel_gof(ev, fitted)
+    covariates, covariate_rows = covariate_checks(ev, fitted)
+    err_var, gof_var, variance_rows = variance_gof(ev, fitted)
+    err_growth, gof_growth, growth_rows = growth_gof(ev, fitted)
+    gof_spatial, ripley, spatial_rows = spatial_gof(ev, fitted)
+    error_rows = [CheckRow(f"pixel: held-out error² ({name}, {n} pixel means)", value**2, 1.0,
+                           (value**2 - 1) / math.sqrt(2 / max(n, 1)))
+                  for name, value in reversed(classes.items()) if value is not None
+                  for n in [int(np.sum(ev.usable & (px.classes == CLASSES.index(name))))]]
+    checks = [*error_rows, *pixel_rows, *covariate_rows, *variance_rows, *growth_rows, *spatial_rows]
     candidates, notes = diagnose(ev, fitted, candidate_names(fitted.effects))
     warn = (list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
             + single_frame_warnings(ev, fitted))

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from forensics.check.projection import PixelProjector, shrink_local, solve_local
+from forensics.check.local_solve import PixelProjector, shrink_local, solve_local
 
 
 def _columns(rng, R=9, shape=(4, 5), k=3):
