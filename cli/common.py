@@ -174,6 +174,10 @@ def add_dark_options(parser: argparse.ArgumentParser, second: bool = False) -> N
                             + (" (both sets, unless --dark-b gives SET_B its own)" if second else ""))
     if second:
         group.add_argument("--dark-b", metavar="DARKSET", help="SET_B's own bias and dark frames (another camera)")
+    group.add_argument("--dark-scale", choices=["exposure", "fit"], default="exposure",
+                       help="scale the dark pattern to each frame by its exposure (default; a frame that shows no dark "
+                            "pattern, dark-subtracted already, is refused) or by the share of it the frame shows "
+                            "('fit': also right for frames the capture software reduced)")
     group.add_argument("--dark-doubling", type=positive_float, metavar="T_D", default=None,
                        help="doubling temperature of the dark current (°C) to scale darks taken at another "
                             "temperature than the frames (default: refuse such frames)")
@@ -188,7 +192,7 @@ def dark_for(args: argparse.Namespace, folder: Any, executor: Any) -> Any:
     darks = folder if hasattr(folder, "frames") else open_input(args, folder)
     folder = getattr(darks, "root", folder)
     info(args, f"dark calibration from {folder} …")
-    cal = dark_calibration(darks, doubling_c=args.dark_doubling, executor=executor,
+    cal = dark_calibration(darks, doubling_c=args.dark_doubling, scale=args.dark_scale, executor=executor,
                            progress=progress_for(args))
     for message in cal.warnings:
         warn(f"dark set {folder}: {message}")

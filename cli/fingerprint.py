@@ -160,7 +160,7 @@ def run_build(args: argparse.Namespace) -> int:
     # Finished chunks are kept in .FP.partial beside the output until it is written: an interrupted build resumes.
     partial = out.with_name(f".{out.name}.partial")
     darks = open_input(args, args.dark) if args.dark else None
-    config = _build_config(ds, region, args.sigma, darks, args.dark_doubling)
+    config = _build_config(ds, region, args.sigma, darks, args.dark_doubling, args.dark_scale)
     with executor_for(args) as ex:
         dark = dark_for(args, darks, ex)
         images = ds if dark is not None else ds.frames  # a calibration reads each frame's exposure from the dataset
@@ -196,8 +196,8 @@ def _warn_content_free(frames: list[dict[str, str]], total: int, where: str) -> 
              f"{frames[0]['file']}: {frames[0]['reason']})")
 
 
-def _build_config(ds: Any, region: Any, sigma: float, darks: Any = None, doubling: float | None = None
-                  ) -> dict[str, Any]:
+def _build_config(ds: Any, region: Any, sigma: float, darks: Any = None, doubling: float | None = None,
+                  scale: str = "exposure") -> dict[str, Any]:
     """What a build's chunks depend on: every input file (with its size and time), the dark set's, the settings."""
     from forensics import __version__
     from forensics.prnu.fingerprint import CHUNK_IMAGES
@@ -205,7 +205,7 @@ def _build_config(ds: Any, region: Any, sigma: float, darks: Any = None, doublin
     config = {"command": "fingerprint build", "files": _file_stats(ds), "region": region.spec, "sigma": sigma,
               "chunk_images": CHUNK_IMAGES, "version": __version__}
     if darks is not None:
-        config["dark"] = {"files": _file_stats(darks), "doubling_c": doubling}
+        config["dark"] = {"files": _file_stats(darks), "doubling_c": doubling, "scale": scale}
     return config
 
 

@@ -137,4 +137,5 @@ def _command(args: argparse.Namespace) -> str:
             f"--bootstrap {args.bootstrap} --ageing-fingerprints {args.ageing_fingerprints} "
             f"--ageing-images {args.ageing_images} --ageing-residual {args.ageing_residual}"
             + "".join(f" {flag} {value}" for flag, value in (("--dark", args.dark), ("--dark-b", args.dark_b),
-                                                              ("--dark-doubling", args.dark_doubling)) if value))
+                                                              ("--dark-doubling", args.dark_doubling)) if value)
+            + (f" --dark-scale {args.dark_scale}" if args.dark or args.dark_b else ""))

@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -56,6 +56,8 @@ PROBES = 256
 #: :data:`DECISIVE_SE`, was dark-subtracted already (raw frames show 1, dark-subtracted ones 0: the midpoint).
 SHARE_REFUSED = 0.5
 DECISIVE_SE = 0.1
+#: How the dark pattern is scaled to a frame (:class:`DarkCalibration`).
+SCALES = ("exposure", "fit")
 
 
 @dataclass(frozen=True)
@@ -79,11 +81,21 @@ class DarkGroup:
 
 @dataclass(frozen=True)
 class FrameCalibration:
-    """How one frame is calibrated: its exposure, the group used and the factor its rates are scaled by."""
+    """How one frame is calibrated: its exposure, the group used, the temperature factor of its rates, the scale of
+    the whole dark pattern (1, or the frame's own share with ``scale='fit'``) and the share measured
+    (:func:`dark_pattern_share`, with its standard error; NaN and inf before it is measured)."""
 
     exposure_s: float
     group: int
     factor: float
+    scale: float = 1.0
+    share: float = math.nan
+    share_se: float = math.inf
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"exposure_s": self.exposure_s, "group": self.group, "temperature_factor": self.factor,
+                "scale": self.scale, "dark_share": None if math.isnan(self.share) else self.share,
+                "dark_share_se": None if math.isinf(self.share_se) else self.share_se}
 
 
 @dataclass(frozen=True)
@@ -91,7 +103,10 @@ class DarkCalibration:
     """Master offset and dark rate per temperature group, for ``frame − offset − factor·rate·exposure``.
 
     ``white_level`` is the full scale of the dark frames' type (the calibrated frames' saturation level);
-    ``doubling_c`` the doubling temperature used across temperatures (None: refuse a frame no group matches).
+    ``doubling_c`` the doubling temperature used across temperatures (None: refuse a frame no group matches);
+    ``scale`` how the pattern is scaled to a frame: ``'exposure'`` (ccdproc's ``subtract_dark(scale=True)``; a frame
+    showing less than half the predicted pattern is refused) or ``'fit'`` (each frame's own measured share of it, the
+    "dark frame optimisation" of astronomical software: right also for frames the capture software reduced).
     """
 
     groups: tuple[DarkGroup, ...]
@@ -100,6 +115,7 @@ class DarkCalibration:
     doubling_c: float | None = None
     tolerance_c: float = 1.0
     warnings: tuple[str, ...] = ()
+    scale: str = "exposure"
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -107,7 +123,7 @@ class DarkCalibration:
 
     def to_dict(self) -> dict[str, Any]:
         return {"source": self.source, "shape": list(self.shape), "white_level": self.white_level,
-                "doubling_c": self.doubling_c, "tolerance_c": self.tolerance_c,
+                "doubling_c": self.doubling_c, "tolerance_c": self.tolerance_c, "scale": self.scale,
                 "groups": [g.to_dict() for g in self.groups], "warnings": list(self.warnings),
                 "method": "frame - offset - rate * exposure (per-pixel lines of the dark-series fit, cosmic rays "
                           "rejected)"}
@@ -186,19 +202,22 @@ class DarkCalibration:
                              f"{self.white_level:g}; give darks written like the frames")
         group = self.groups[how.group]
         out = raw.astype(np.float32)
-        out -= group.offset
-        # float32 throughout: a 1 MP frame's extra term in one temporary, the exposure folded into one scalar
-        out -= group.rate * np.float32(how.factor * how.exposure_s)
+        # float32 throughout: one temporary per term, the scales folded into scalars
+        out -= group.offset * np.float32(how.scale) if how.scale != 1.0 else group.offset
+        out -= group.rate * np.float32(how.scale * how.factor * how.exposure_s)
         if raw.dtype.kind in "ui":
             # keep saturated pixels saturated (the fingerprint's mask finds them) and everything else below it
             np.minimum(out, np.float32(np.nextafter(np.float32(self.white_level), np.float32(0))), out=out)
             out[raw >= self.white_level] = self.white_level
         return out
 
-    def check_raw(self, raw: np.ndarray, how: FrameCalibration, name: str = "frame") -> None:
-        """Refuse a frame that shows clearly less than half the dark pattern predicted for it (see
-        :func:`dark_pattern_share`): it was dark-subtracted already, and calibrating it again would put the pattern
-        back in, negated.
+    def measure(self, raw: np.ndarray, how: FrameCalibration, name: str = "frame") -> FrameCalibration:
+        """``how`` with the frame's share of the predicted dark pattern and the scale it gets.
+
+        With ``scale='exposure'`` a frame showing clearly less than half the pattern (share below
+        :data:`SHARE_REFUSED`, measured to better than :data:`DECISIVE_SE`) is refused: it was dark-subtracted
+        already, and calibrating it again would put the pattern back in, negated.  With ``scale='fit'`` the frame's
+        share is its scale when it is measured that well, else 1.
 
         Raises
         ------
@@ -206,19 +225,24 @@ class DarkCalibration:
             Naming the frame, the share measured and what to do.
         """
         share, se, n = dark_pattern_share(raw, self.groups[how.group], how, self.white_level)
-        if n and se < DECISIVE_SE and share < SHARE_REFUSED:
+        decisive = bool(n) and se < DECISIVE_SE
+        if self.scale == "exposure" and decisive and share < SHARE_REFUSED:
             group = self.groups[how.group]
-            hot = group.rate.ravel()[group.probes[:n]] if group.probes.size else np.zeros(1)
+            hot = group.rate.ravel()[group.probes]
             raise InputError(f"{name}: shows {100 * share:.1f} ± {100 * se:.1f} % of the dark pattern the dark set "
                              f"predicts at its {n} hottest pixels ({float(hot.min()):.3g}-{float(hot.max()):.3g} ADU/s), "
                              "where a raw frame shows 100 %: it was dark-subtracted already (e.g. by the capture "
-                             "software's auto-dark); leave out --dark for these frames")
+                             "software's auto-dark); leave out --dark, or scale the darks to what the frames show "
+                             "(--dark-scale fit)")
+        scale = share if self.scale == "fit" and decisive else 1.0
+        return replace(how, scale=float(scale), share=float(share), share_se=float(se))
 
     def calibrated_frames(self, images: Any) -> list["CalibratedFrame"]:
         """The frames of a dataset (folder or :class:`~forensics.io.dataset.Dataset`), each loading calibrated.
 
-        Each frame's exposure and temperature are read now, so a frame that cannot be calibrated is named before
-        any work; the frames are picklable (workers calibrate the frames they read).
+        Each frame's exposure and temperature are read now, and its pixels once (its share of the dark pattern,
+        :meth:`measure`), so a frame that cannot be calibrated is named before any work; the frames are picklable
+        (workers calibrate the frames they read).
 
         Raises
         ------
@@ -242,8 +266,9 @@ class DarkCalibration:
                 raise InputError(f"{frames[0].path}: frame is {info.width}×{info.height} but the dark set "
                                  f"{self.source}'s frames are {w}×{h}; give darks of this camera at the same size "
                                  "and binning")
-        return [CalibratedFrame(self, f, self.plan(str(f.path), f.exposure_s, f.get("temperature_c"), set_point(f)))
-                for f in frames]
+        plans = [self.plan(str(f.path), f.exposure_s, f.get("temperature_c"), set_point(f)) for f in frames]
+        # one read of each frame now (streamed) for its share of the pattern: a refusal comes before any work
+        return [CalibratedFrame(self, f, self.measure(f.load(), how, str(f.path))) for f, how in zip(frames, plans)]
 
     def calibrated_set(self, images: Any, name: str | None = None) -> ImageSet:
         """:meth:`calibrated_frames` as an :class:`ImageSet` (named ``name``, default the folder's name)."""
@@ -273,16 +298,11 @@ class CalibratedFrame:
         return self.frame.file
 
     def load(self) -> np.ndarray:
-        """The calibrated frame.
+        """The calibrated frame (:meth:`DarkCalibration.apply`)."""
+        return self.calibration.apply(self.frame.load(), self.how, str(self.frame.path))
 
-        Raises
-        ------
-        InputError
-            The frame does not carry the dark pattern the darks predict (it was dark-subtracted already).
-        """
-        raw = self.frame.load()
-        self.calibration.check_raw(raw, self.how, str(self.frame.path))
-        return self.calibration.apply(raw, self.how, str(self.frame.path))
+    def to_dict(self) -> dict[str, Any]:
+        return {"file": str(self.frame.path), **self.how.to_dict()}
 
 
 def _neighbour_median(image: np.ndarray, flat_index: np.ndarray) -> np.ndarray:
@@ -327,7 +347,7 @@ def dark_pattern_share(raw: np.ndarray, group: DarkGroup, how: FrameCalibration,
     return share, sigma / math.sqrt(ss) if ss > 0 else math.inf, int(ok.sum())
 
 
-def dark_calibration(darks: "Dataset | str | os.PathLike", *, doubling_c: float | None = None,
+def dark_calibration(darks: "Dataset | str | os.PathLike", *, doubling_c: float | None = None, scale: str = "exposure",
                      executor: "Executor | None" = None, progress: Progress = no_progress) -> DarkCalibration:
     """Master offset and dark rate per temperature group from a folder of biases and darks (streamed).
 
@@ -336,15 +356,21 @@ def dark_calibration(darks: "Dataset | str | os.PathLike", *, doubling_c: float 
     fields in the folder only give the fit's conversion gain.  Pixels whose line could not be fitted (saturated in
     every dark) get the group's median offset and rate, counted in ``DarkGroup.filled``.
 
+    ``scale`` is ``'exposure'`` or ``'fit'`` (:class:`DarkCalibration`).
+
     Raises
     ------
     InputError
         Frames without exposure time or type, of different sizes, or no group with two exposure times.
+    UsageError
+        A doubling temperature that is not positive, or an unknown ``scale``.
     """
     from forensics.defects.darkdetect import series_frames
     from forensics.defects.darkseries import SETPOINT_TOLERANCE_C, _frame_dtype, fit_dark_series, plan_series
     from forensics.io.dataset import open_dataset
 
+    if scale not in SCALES:
+        raise UsageError(f"scale={scale!r}: choose one of {', '.join(SCALES)}")
     if doubling_c is not None and not doubling_c > 0:
         raise UsageError(f"doubling temperature {doubling_c}: give a positive number of °C (5-9 is typical of CCDs)")
     ds = open_dataset(darks) if isinstance(darks, (str, os.PathLike)) else darks
@@ -356,7 +382,7 @@ def dark_calibration(darks: "Dataset | str | os.PathLike", *, doubling_c: float 
     white = full_scale(_frame_dtype(plan.frames[plan.groups[0][0]].path))
     fit = fit_dark_series(plan, executor=executor, progress=progress)
     groups = tuple(_group(g, fit.shape) for g in fit.groups)
-    return DarkCalibration(groups, str(ds.root), white, doubling_c, SETPOINT_TOLERANCE_C, tuple(fit.warnings))
+    return DarkCalibration(groups, str(ds.root), white, doubling_c, SETPOINT_TOLERANCE_C, tuple(fit.warnings), scale)
 
 
 def _group(g: Any, shape: Sequence[int]) -> DarkGroup:

@@ -991,11 +991,12 @@ def build_fingerprint(
     from forensics.io.dataset import Dataset
 
     if dark is not None:
-        images = dark.calibrated_set(images, name)
+        frames = dark.calibrated_frames(images)
         options.setdefault("white_level", dark.white_level)  # calibrated floats keep the raw frames' full scale
-        fp = build_fingerprint(images, region, sigma, sources=sources, progress=progress, total=total,
-                               executor=executor, checkpoint=checkpoint, name=name, **options)
-        fp.parameters["dark_calibration"] = dark.to_dict()
+        fp = build_fingerprint(frames, region, sigma, sources=sources, progress=progress, total=total,
+                               executor=executor, checkpoint=checkpoint,
+                               name=name or str(getattr(images, "root", images)), **options)
+        fp.parameters["dark_calibration"] = {**dark.to_dict(), "frames": [f.to_dict() for f in frames]}
         return fp
     builder = FingerprintBuilder(region, sigma, **options)
     names = None if sources is None else [str(s) for s in sources]

@@ -85,8 +85,8 @@ def test_dark_pattern_share_tells_raw_frames_from_dark_subtracted_ones(series):
     share0, se0, _ = dark_pattern_share(subtracted, cal.groups[0], how, cal.white_level)
     assert abs(share0) < 4 * se0
     with pytest.raises(InputError, match="dark-subtracted already"):
-        cal.check_raw(subtracted, how, str(path))
-    cal.check_raw(raw, how, str(path))  # a raw frame passes
+        cal.measure(subtracted, how, str(path))
+    assert cal.measure(raw, how, str(path)).scale == 1.0  # a raw frame passes, calibrated by its exposure
 
 
 def test_darks_of_another_temperature_are_refused(series, tmp_path):
@@ -184,6 +184,28 @@ def test_cli_refuses_flats_already_dark_subtracted(series, tmp_path, cli):
     line = _one_line_error(cli, "fingerprint", "build", folder, "-o", tmp_path / "fp.npz", "--dark", root / "darks",
                            "--workers", "1")
     assert "dark-subtracted already" in line and "leave out --dark" in line and ".fits" in line
+    assert not (tmp_path / "fp.npz").exists()
+
+
+def test_fitted_scale_follows_what_each_frame_shows(series, tmp_path):
+    """``scale='fit'``: raw flats get ≈ 1 (the exposure's calibration), flats reduced already ≈ 0 (left as they are),
+    each within 4 standard errors of its share; the fingerprints are then free of the pattern either way."""
+    from astropy.io import fits
+
+    root, _, pattern, _, _ = series
+    cal = dark_calibration(root / "darks", scale="fit")
+    folder = tmp_path / "subtracted"
+    folder.mkdir()
+    for path in sorted((root / "flats").glob("*.fits")):
+        with fits.open(path) as hdul:
+            data = np.clip(np.rint(hdul[0].data - pattern + 100.0), 0, 65535).astype(np.uint16)
+            fits.PrimaryHDU(data, header=hdul[0].header).writeto(folder / path.name)
+    for source, expected in ((root / "flats", 1.0), (folder, 0.0)):
+        fp = build_fingerprint(open_dataset(source), "full", 3.0, dark=cal)
+        for frame in fp.parameters["dark_calibration"]["frames"]:
+            assert abs(frame["scale"] - expected) < 4 * frame["dark_share_se"]
+        value, sd = _ncc(fp.K, pattern)
+        assert abs(value) < 4 * sd
 
 
 def test_same_device_with_dark(series, tmp_path, cli_json):
