@@ -24,9 +24,19 @@ calibration is refused — dark current doubles every 5–9 °C (≈ 5 °C for t
 frame's measured one.  One T_d for every pixel is an approximation (hot pixels double more slowly than the bulk):
 the matching group is always preferred.  The offset is not scaled (its read-out charge is a few ADU).
 
+**Frames reduced already.**  Capture software often subtracts a dark itself (CCDSoft's auto-dark; the 2017 STL-1001E
+flats of the README are such frames: their hottest pixels, which add up to 37,600 ADU to a raw 23 s frame, show
+nothing).  Calibrating those again puts the pattern back in, negated.  So every frame's *share* of the predicted
+pattern is measured first (:func:`dark_pattern_share`, at the 256 hottest isolated pixels: 1 for a raw frame, 0 for
+a reduced one), one streamed read per frame before the build.  With ``scale='exposure'`` (ccdproc's
+``subtract_dark(scale=True)``, the default) a frame clearly below half is refused, named; with ``scale='fit'`` each
+frame's pattern is scaled by its share — the "dark frame optimisation" of astronomical software — which calibrates
+raw frames as the exposure does (share 1.00 ± 0.01) and also removes what an imperfect reduction left.
+
 Saturated raw pixels (at the frame type's full scale) stay saturated after calibration, so the fingerprint's
 saturation mask still excludes them; every calibrated frame is float32 in ADU with that full scale as its white
-level.  Memory: two float32 maps per temperature group (8 MB per group at 1 MP), plus one frame at a time.
+level.  Memory: two float32 maps per temperature group (8 MB per group at 1 MP), plus one frame at a time; the fit
+of the master frames peaks at ≈ 0.75 GB for the 42 frames of 1 MP of the 2017 series (its per-pixel sums).
 """
 from __future__ import annotations
 
