@@ -180,6 +180,7 @@ def run_build(args: argparse.Namespace) -> int:
         return "\n".join([
             f"Fingerprint of {fp.n_images} images ({w}×{h}) from {ds.root} → {out}",
             f"  region {fp.region}: K is {fp.shape[1]}×{fp.shape[0]}, σ = {fp.sigma:g} (8-bit scale)",
+            *_dark_lines(fp.parameters.get("dark_calibration")),
             f"  K: standard deviation {float(fp.K.std()):.4g}; saturated pixels excluded: {100 * excluded:.2f} %",
             f"  next: forensics fingerprint match {out} IMAGES/",
         ])
@@ -187,6 +188,20 @@ def run_build(args: argparse.Namespace) -> int:
     emit(args, summary, lambda: {"output": str(out), **fp.to_dict(), "k_std": float(fp.K.std()),
                                  "execution": execution})
     return 0
+
+
+def _dark_lines(cal: dict[str, Any] | None) -> list[str]:
+    """The summary's line about a dark calibration: where from, how scaled, what share of the pattern the frames showed."""
+    if not cal:
+        return []
+    shares = [f["dark_share"] for f in cal.get("frames", []) if f.get("dark_share") is not None]
+    scales = [f["scale"] for f in cal.get("frames", [])]
+    if cal.get("scale") == "fit" and scales:
+        how = f"its dark pattern scaled to each frame's share of it, {min(scales):.3f}–{max(scales):.3f}"
+    else:
+        how = "by exposure" + (f"; the frames showed {min(shares):.3f}–{max(shares):.3f} of its dark pattern"
+                               if shares else "")
+    return [f"  dark-calibrated with {cal['source']} ({how})"]
 
 
 def _warn_content_free(frames: list[dict[str, str]], total: int, where: str) -> None:
