@@ -244,6 +244,9 @@ def run_match(args: argparse.Namespace) -> int:
     ds = open_input(args, args.set)
     if fp.region.startswith("corners") and args.shift_range != 0 and args.metric == "pce":
         warn("a shift search on a 'corners' fingerprint compares unrelated patches; zero shift is the right test")
+    if fp.parameters.get("dark_calibration") and not args.dark:
+        warn(f"{args.fingerprint} was built from dark-calibrated frames; raw CCD frames scored against it keep their "
+             "dark pattern as noise: give --dark for them too")
     info(args, f"scoring {len(ds)} images of {ds.root} against {args.fingerprint} ({args.metric}) …")
     with executor_for(args) as ex:
         dark = dark_for(args, args.dark, ex)

@@ -110,7 +110,7 @@ def test_a_doubling_temperature_scales_darks_of_another_temperature(series, tmp_
 
 # ----------------------------------------------------------------------------- the command line
 
-def test_cli_build_and_match_with_dark(series, tmp_path, cli_json):
+def test_cli_build_and_match_with_dark(series, tmp_path, cli_json, cli):
     root, *_ = series
     out = tmp_path / "fp.npz"
     built = cli_json("fingerprint", "build", root / "flats", "-o", out, "--dark", root / "darks", "--workers", "1",
@@ -120,6 +120,8 @@ def test_cli_build_and_match_with_dark(series, tmp_path, cli_json):
     matched = cli_json("fingerprint", "match", out, root / "flats", "--dark", root / "darks", "--workers", "1",
                        "--quiet")
     assert matched["n_match"] == 10
+    code, _, err = cli("fingerprint", "match", out, root / "flats", "--workers", "1", "--quiet", "--json")
+    assert code == 0 and "give --dark for them too" in err
 
 
 def _one_line_error(cli, *argv) -> str:
