@@ -20,7 +20,8 @@ Measured, on 1024 × 1024 frames, region ``full``, one process:
    * ``flats, subtracted twice``: the same with the calibration forced on (``DarkCalibration.apply`` without the
      check): what --dark would do if it did not refuse;
    * ``flats --dark-scale fit``: the dark pattern scaled to what each flat shows (its measured share);
-   * ``re-darkened``, ``re-darkened --dark`` and ``… --dark-scale fit``: each flat with a real dark pattern added back, measured on frames
+   * ``re-darkened``, ``re-darkened --dark`` and ``… --dark-scale fit``:
+     each flat with a real dark pattern added back, measured on frames
      the calibration does not use — the median of five −5 °C biases (0–4) plus (median of the ten 60 s darks −
      that bias)·23/60, minus the 100 ADU pedestal — so they are raw flats again, with this camera's own PRNU and
      dark pattern; calibrated with a master fitted *without* those frames (biases 5–9, the single darks), so the
@@ -123,7 +124,8 @@ def main() -> None:
         d60 = sorted(glob.glob(str(d / "darks-expos1-*")))
         singles = sorted(glob.glob(str(d / "darks-expos*s-*")))
         full = dark_calibration(link(tmp / "darks", sorted(glob.glob(str(d / "bias-Neg10-*"))) + b5 + singles))
-        split = dark_calibration(link(tmp / "darks_split", sorted(glob.glob(str(d / "bias-Neg10-*"))) + b5[5:] + singles))
+        cold = sorted(glob.glob(str(d / "bias-Neg10-*")))
+        split = dark_calibration(link(tmp / "darks_split", cold + b5[5:] + singles))
         fitted, split_fitted = replace(full, scale="fit"), replace(split, scale="fit")
         g = 1  # the −5 °C group
         print(f"dark calibration fitted in {time.time() - start:.0f} s")

@@ -191,7 +191,8 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def _dark_lines(cal: dict[str, Any] | None) -> list[str]:
-    """The summary's line about a dark calibration: where from, how scaled, what share of the pattern the frames showed."""
+    """The summary's line about a dark calibration: where from, how scaled, what share of its pattern the frames
+    showed."""
     if not cal:
         return []
     shares = [f["dark_share"] for f in cal.get("frames", []) if f.get("dark_share") is not None]

@@ -239,8 +239,9 @@ class DarkCalibration:
         if self.scale == "exposure" and decisive and share < SHARE_REFUSED:
             group = self.groups[how.group]
             hot = group.rate.ravel()[group.probes]
+            rates = f"{float(hot.min()):.3g}-{float(hot.max()):.3g} ADU/s"
             raise InputError(f"{name}: shows {100 * share:.1f} ± {100 * se:.1f} % of the dark pattern the dark set "
-                             f"predicts at its {n} hottest pixels ({float(hot.min()):.3g}-{float(hot.max()):.3g} ADU/s), "
+                             f"predicts at its {n} hottest pixels ({rates}), "
                              "where a raw frame shows 100 %: it was dark-subtracted already (e.g. by the capture "
                              "software's auto-dark); leave out --dark, or scale the darks to what the frames show "
                              "(--dark-scale fit)")
