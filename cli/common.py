@@ -164,6 +164,41 @@ def add_input_options(parser: argparse.ArgumentParser) -> None:
                              "links leaving it); refused by default")
 
 
+def add_dark_options(parser: argparse.ArgumentParser, second: bool = False) -> None:
+    """Add ``--dark DARKSET`` and ``--dark-doubling T_D`` (and ``--dark-b`` for a second set's own darks)."""
+    group = parser.add_argument_group("dark calibration (raw CCD frames)")
+    group.add_argument("--dark", metavar="DARKSET",
+                       help="folder of bias and dark frames (FITS EXPTIME/IMAGETYP or a manifest's exposure_s and "
+                            "frame_type) of this camera: every frame is calibrated as frame - offset - "
+                            "rate*exposure before its residual, so the fingerprint holds PRNU, not the dark pattern"
+                            + (" (both sets, unless --dark-b gives SET_B its own)" if second else ""))
+    if second:
+        group.add_argument("--dark-b", metavar="DARKSET", help="SET_B's own bias and dark frames (another camera)")
+    group.add_argument("--dark-scale", choices=["exposure", "fit"], default="exposure",
+                       help="scale the dark pattern to each frame by its exposure (default; a frame that shows no dark "
+                            "pattern, dark-subtracted already, is refused) or by the share of it the frame shows "
+                            "('fit': also right for frames the capture software reduced)")
+    group.add_argument("--dark-doubling", type=positive_float, metavar="T_D", default=None,
+                       help="doubling temperature of the dark current (°C) to scale darks taken at another "
+                            "temperature than the frames (default: refuse such frames)")
+
+
+def dark_for(args: argparse.Namespace, folder: Any, executor: Any) -> Any:
+    """The dark calibration of ``folder`` (None for None), fitted on ``executor`` (streamed)."""
+    if folder is None:
+        return None
+    from forensics.prnu.calibration import dark_calibration
+
+    darks = folder if hasattr(folder, "frames") else open_input(args, folder)
+    folder = getattr(darks, "root", folder)
+    info(args, f"dark calibration from {folder} …")
+    cal = dark_calibration(darks, doubling_c=args.dark_doubling, scale=args.dark_scale, executor=executor,
+                           progress=progress_for(args))
+    for message in cal.warnings:
+        warn(f"dark set {folder}: {message}")
+    return cal
+
+
 def open_input(args: argparse.Namespace, folder: Any) -> Any:
     """Open a dataset the way the user asked (``--allow-outside``)."""
     from forensics.io.dataset import open_dataset

@@ -10,10 +10,12 @@ from typing import Any
 from textwrap import fill
 
 from forensics.cli.common import (
+    add_dark_options,
     add_execution_options,
     add_input_options,
     add_output_options,
     command_parser,
+    dark_for,
     emit,
     executor_for,
     info,
@@ -48,9 +50,10 @@ def register(sub) -> None:
     build.add_argument("--sigma", type=positive_float, default=3.0,
                        help="noise level of the wavelet denoiser on an 8-bit scale (default 3, the reference's)")
     add_input_options(build)
+    add_dark_options(build)
     add_execution_options(build)
     add_output_options(build, report=False)
-    build.set_defaults(handler=run_build, inputs=("set",), outputs=("--output",))
+    build.set_defaults(handler=run_build, inputs=("set", "--dark"), outputs=("--output",))
 
     match = command_parser(
         inner, "match", "score each image of a set against a fingerprint, with a decision",
@@ -69,9 +72,10 @@ def register(sub) -> None:
                             "shift, which inflates non-matching PCE)")
     match.add_argument("--sigma", type=positive_float, default=2.0, help="query residual noise level, 8-bit scale (default 2)")
     add_input_options(match)
+    add_dark_options(match)
     add_execution_options(match)
     add_output_options(match)
-    match.set_defaults(handler=run_match, inputs=("fingerprint", "set"), outputs=("--report",))
+    match.set_defaults(handler=run_match, inputs=("fingerprint", "set", "--dark"), outputs=("--report",))
     _register_db(inner)
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
 
@@ -155,11 +159,16 @@ def run_build(args: argparse.Namespace) -> int:
     info(args, f"building a fingerprint from {len(ds)} images of {ds.root} ({region.spec}) …")
     # Finished chunks are kept in .FP.partial beside the output until it is written: an interrupted build resumes.
     partial = out.with_name(f".{out.name}.partial")
-    with executor_for(args) as ex, resumable_checkpoint(partial, _build_config(ds, region, args.sigma), args.force,
-                                                        inputs=[f.path for f in ds.frames]) as checkpoint:
-        fp = build_fingerprint(ds.frames, region, args.sigma, progress=progress_for(args), executor=ex,
-                               checkpoint=checkpoint, name=str(ds.root), **raw_options(ds.frames[0].path))
-        fp.save(out, force=args.force)
+    darks = open_input(args, args.dark) if args.dark else None
+    config = _build_config(ds, region, args.sigma, darks, args.dark_doubling, args.dark_scale)
+    with executor_for(args) as ex:
+        dark = dark_for(args, darks, ex)
+        images = ds if dark is not None else ds.frames  # a calibration reads each frame's exposure from the dataset
+        with resumable_checkpoint(partial, config, args.force, inputs=[f.path for f in ds.frames]) as checkpoint:
+            fp = build_fingerprint(images, region, args.sigma, progress=progress_for(args), executor=ex,
+                                   checkpoint=checkpoint, name=str(ds.root), dark=dark,
+                                   **raw_options(ds.frames[0].path))
+            fp.save(out, force=args.force)
         execution = ex.info().to_dict()
     excluded = fp.parameters.get("excluded_pixel_fraction", 0.0)
     _warn_content_free(fp.parameters.get("excluded_frames", []), len(ds), str(ds.root))
@@ -171,6 +180,7 @@ def run_build(args: argparse.Namespace) -> int:
         return "\n".join([
             f"Fingerprint of {fp.n_images} images ({w}×{h}) from {ds.root} → {out}",
             f"  region {fp.region}: K is {fp.shape[1]}×{fp.shape[0]}, σ = {fp.sigma:g} (8-bit scale)",
+            *_dark_lines(fp.parameters.get("dark_calibration")),
             f"  K: standard deviation {float(fp.K.std()):.4g}; saturated pixels excluded: {100 * excluded:.2f} %",
             f"  next: forensics fingerprint match {out} IMAGES/",
         ])
@@ -180,6 +190,21 @@ def run_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _dark_lines(cal: dict[str, Any] | None) -> list[str]:
+    """The summary's line about a dark calibration: where from, how scaled, what share of its pattern the frames
+    showed."""
+    if not cal:
+        return []
+    shares = [f["dark_share"] for f in cal.get("frames", []) if f.get("dark_share") is not None]
+    scales = [f["scale"] for f in cal.get("frames", [])]
+    if cal.get("scale") == "fit" and scales:
+        how = f"its dark pattern scaled to each frame's share of it, {min(scales):.3f}–{max(scales):.3f}"
+    else:
+        how = "by exposure" + (f"; the frames showed {min(shares):.3f}–{max(shares):.3f} of its dark pattern"
+                               if shares else "")
+    return [f"  dark-calibrated with {cal['source']} ({how})"]
+
+
 def _warn_content_free(frames: list[dict[str, str]], total: int, where: str) -> None:
     """One warning for the content-free frames a build or a scoring left out (the first one's reason)."""
     if frames:
@@ -187,11 +212,20 @@ def _warn_content_free(frames: list[dict[str, str]], total: int, where: str) -> 
              f"{frames[0]['file']}: {frames[0]['reason']})")
 
 
-def _build_config(ds: Any, region: Any, sigma: float) -> dict[str, Any]:
-    """What a build's chunks depend on: every input file (with its size and time) and the settings."""
+def _build_config(ds: Any, region: Any, sigma: float, darks: Any = None, doubling: float | None = None,
+                  scale: str = "exposure") -> dict[str, Any]:
+    """What a build's chunks depend on: every input file (with its size and time), the dark set's, the settings."""
     from forensics import __version__
     from forensics.prnu.fingerprint import CHUNK_IMAGES
 
+    config = {"command": "fingerprint build", "files": _file_stats(ds), "region": region.spec, "sigma": sigma,
+              "chunk_images": CHUNK_IMAGES, "version": __version__}
+    if darks is not None:
+        config["dark"] = {"files": _file_stats(darks), "doubling_c": doubling, "scale": scale}
+    return config
+
+
+def _file_stats(ds: Any) -> list[list[Any]]:
     files = []
     for frame in ds.frames:
         try:
@@ -199,8 +233,7 @@ def _build_config(ds: Any, region: Any, sigma: float) -> dict[str, Any]:
             files.append([str(frame.path), stat.st_size, stat.st_mtime_ns])
         except OSError:  # reported by the build itself, with the file's name
             files.append([str(frame.path), None, None])
-    return {"command": "fingerprint build", "files": files, "region": region.spec, "sigma": sigma,
-            "chunk_images": CHUNK_IMAGES, "version": __version__}
+    return files
 
 
 def run_match(args: argparse.Namespace) -> int:
@@ -212,10 +245,15 @@ def run_match(args: argparse.Namespace) -> int:
     ds = open_input(args, args.set)
     if fp.region.startswith("corners") and args.shift_range != 0 and args.metric == "pce":
         warn("a shift search on a 'corners' fingerprint compares unrelated patches; zero shift is the right test")
+    if fp.parameters.get("dark_calibration") and not args.dark:
+        warn(f"{args.fingerprint} was built from dark-calibrated frames; raw CCD frames scored against it keep their "
+             "dark pattern as noise: give --dark for them too")
     info(args, f"scoring {len(ds)} images of {ds.root} against {args.fingerprint} ({args.metric}) …")
     with executor_for(args) as ex:
+        dark = dark_for(args, args.dark, ex)
         result = match_set(fp, ds, args.metric, threshold=args.threshold, shift_range=args.shift_range,
-                           sigma=args.sigma, progress=progress_for(args), name=str(args.fingerprint), executor=ex)
+                           sigma=args.sigma, progress=progress_for(args), name=str(args.fingerprint), executor=ex,
+                           dark=dark)
         execution = ex.info().to_dict()
     _warn_content_free([{"file": r["file"], "reason": r["excluded"]} for r in result.excluded], len(ds), str(ds.root))
     payload = result.to_dict()

@@ -7,10 +7,12 @@ from pathlib import Path
 from textwrap import fill
 
 from forensics.cli.common import (
+    add_dark_options,
     add_execution_options,
     add_input_options,
     add_output_options,
     command_parser,
+    dark_for,
     emit,
     executor_for,
     info,
@@ -52,9 +54,10 @@ def register(sub) -> None:
     parser.add_argument("--ageing-residual", choices=["median", "wavelet"], default="median",
                         help="residual of the ageing fingerprints (default median, as the paper)")
     add_input_options(parser)
+    add_dark_options(parser, second=True)
     add_execution_options(parser)
     add_output_options(parser)
-    parser.set_defaults(handler=run, inputs=("set_a", "set_b"), outputs=("--report",))
+    parser.set_defaults(handler=run, inputs=("set_a", "set_b", "--dark", "--dark-b"), outputs=("--report",))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -70,8 +73,10 @@ def run(args: argparse.Namespace) -> int:
     if names[0] == names[1]:
         names = (str(args.set_a), str(args.set_b))
     with executor_for(args) as ex:
+        dark_a = dark_for(args, args.dark, ex)
+        dark_b = dark_for(args, args.dark_b, ex) if args.dark_b else dark_a
         result = same_device(
-            ds_a, ds_b, args.seed,
+            ds_a, ds_b, args.seed, dark=None if dark_a is None and dark_b is None else (dark_a, dark_b),
             fingerprint_images=args.fingerprint_images, score_images=args.score_images, region=args.region,
             n_boot=args.bootstrap, ageing=args.ageing_fingerprints > 0,
             ageing_fingerprints=max(args.ageing_fingerprints, 0), ageing_images=args.ageing_images,
@@ -130,4 +135,7 @@ def _command(args: argparse.Namespace) -> str:
     return (f"forensics same-device {args.set_a} {args.set_b} --fingerprint-images {args.fingerprint_images} "
             f"--score-images {args.score_images} --region {args.region} --seed {args.seed} "
             f"--bootstrap {args.bootstrap} --ageing-fingerprints {args.ageing_fingerprints} "
-            f"--ageing-images {args.ageing_images} --ageing-residual {args.ageing_residual}")
+            f"--ageing-images {args.ageing_images} --ageing-residual {args.ageing_residual}"
+            + "".join(f" {flag} {value}" for flag, value in (("--dark", args.dark), ("--dark-b", args.dark_b),
+                                                              ("--dark-doubling", args.dark_doubling)) if value)
+            + (f" --dark-scale {args.dark_scale}" if args.dark or args.dark_b else ""))

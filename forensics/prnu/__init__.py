@@ -19,6 +19,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "ClusterNull", "ClusterResult", "DeviceCluster", "ImageAssignment", "SizeGroup", "cluster_images",
             "comparison_residual",
         ],
+        "calibration": ["CalibratedFrame", "DarkCalibration", "DarkGroup", "FrameCalibration", "dark_calibration"],
         "clusterwrite": ["write_cluster_dataset"],
         "database": ["DeviceEntry", "FingerprintDatabase"],
         "fingerprint": ["Fingerprint", "FingerprintBuilder", "FingerprintJob", "build_fingerprint", "build_fingerprints"],

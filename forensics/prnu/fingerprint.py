@@ -942,6 +942,7 @@ def build_fingerprint(
     executor: Executor | None = None,
     checkpoint: Checkpoint | None = None,
     name: str | None = None,
+    dark: Any = None,
     **options: Any,
 ) -> Fingerprint:
     """Fingerprint from frames, streamed (one frame in memory at a time per worker).
@@ -974,6 +975,11 @@ def build_fingerprint(
         Resume an interrupted build of a sequence (see :func:`build_fingerprints`).
     name : str, optional
         The set's name in messages (default: a Dataset's folder, else 'the images').
+    dark : DarkCalibration, optional
+        Calibrate every frame as ``frame − offset − rate·exposure`` before its residual
+        (:mod:`forensics.prnu.calibration`; raw CCD frames); ``images`` must then be a dataset (folder or
+        Dataset), whose frames give their exposure and temperature.  Recorded in
+        ``parameters['dark_calibration']``.
 
     Raises
     ------
@@ -984,6 +990,14 @@ def build_fingerprint(
     """
     from forensics.io.dataset import Dataset
 
+    if dark is not None:
+        frames = dark.calibrated_frames(images)
+        options.setdefault("white_level", dark.white_level)  # calibrated floats keep the raw frames' full scale
+        fp = build_fingerprint(frames, region, sigma, sources=sources, progress=progress, total=total,
+                               executor=executor, checkpoint=checkpoint,
+                               name=name or str(getattr(images, "root", images)), **options)
+        fp.parameters["dark_calibration"] = {**dark.to_dict(), "frames": [f.to_dict() for f in frames]}
+        return fp
     builder = FingerprintBuilder(region, sigma, **options)
     names = None if sources is None else [str(s) for s in sources]
     if isinstance(images, (ImageSet, Dataset)) or (

@@ -687,7 +687,7 @@ class SetMatch:
 
 def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, threshold: float | None = None,
               shift_range: int | None = 0, sigma: float = QUERY_SIGMA, progress: Progress = no_progress,
-              name: str | None = None, executor: Executor | None = None) -> SetMatch:
+              name: str | None = None, executor: Executor | None = None, dark: Any = None) -> SetMatch:
     """Score each frame of ``dataset`` against ``fingerprint`` and decide at ``threshold``.
 
     Parameters
@@ -706,6 +706,9 @@ def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, th
         How the fingerprint is named in the result (e.g. its file).
     executor : Executor, optional
         Where the frames are scored, one work item each (:func:`score_matrix`); default in this process.
+    dark : DarkCalibration, optional
+        Calibrate every raw CCD frame as ``frame − offset − rate·exposure`` before its residual
+        (:mod:`forensics.prnu.calibration`).
 
     Raises
     ------
@@ -725,9 +728,12 @@ def match_set(fingerprint: Fingerprint, dataset: Any, metric: str = "pce", *, th
     check_fingerprint(fingerprint, name or "fingerprint")
     from forensics.prnu.fingerprint import query_options
 
-    scores, details = score_matrix([fingerprint], dataset.frames, metric, sigma=sigma, shift_range=shift_range,
+    queries, options = dataset.frames, query_options(fingerprint)
+    if dark is not None:
+        queries, options = dark.calibrated_frames(dataset), {**options, "white_level": dark.white_level}
+    scores, details = score_matrix([fingerprint], queries, metric, sigma=sigma, shift_range=shift_range,
                                    progress=progress, total=len(dataset), details=True, executor=executor,
-                                   **query_options(fingerprint))
+                                   **options)
     rows = []
     for frame, value, d in zip(dataset.frames, scores[0], details[0]):
         decision = None if threshold is None or d.excluded is not None else bool(value >= threshold)

@@ -535,6 +535,7 @@ def same_device(
     names: tuple[str, str] | None = None,
     progress: Progress = no_progress,
     executor: Executor | None = None,
+    dark: Any = None,
     **options: Any,
 ) -> SameDeviceResult:
     """The paper's same-device test on two image sets, with the fingerprint-ageing table.
@@ -574,6 +575,11 @@ def same_device(
         image); default in this process.  On worker processes or a cluster the sets' loaders must
         be picklable (dataset folders and frames are).  The result does not depend on it: the
         random draws (selection, bootstraps) are made here, from ``rng`` only.
+    dark : DarkCalibration or (DarkCalibration or None, DarkCalibration or None), optional
+        Calibrate the raw CCD frames of both sets (one calibration), or of each set with its own (a pair), as
+        ``frame − offset − rate·exposure`` before their residuals (:mod:`forensics.prnu.calibration`); a set
+        calibrated must be a dataset (folder or Dataset).  A camera's darks belong to its own frames: give a pair
+        when the sets may come from two cameras with darks of each.
     **options
         white_level, black_level, saturation_level, saturation_dilate, rolloff,
         workers — as :class:`forensics.prnu.fingerprint.FingerprintBuilder`.
@@ -595,6 +601,7 @@ def same_device(
     _check_options(ageing_residual, options)
     ex = resolve(executor)
     region = parse_region(region)
+    set_a, set_b, options = _calibrated(set_a, set_b, dark, names, options)
     images_a, images_b = _open_sets(set_a, set_b, names)
     overlap = _shared_images(images_a, images_b)
     plans = [plan_set(len(s), rng, name=s.name, fingerprint_images=fingerprint_images, score_images=score_images,
@@ -648,6 +655,7 @@ def same_device(
         "ageing_residual": ageing_residual, "median_size": median_size,
         "frame_shape": list(shape_a),
         **{k: v for k, v in options.items() if k != "workers"},
+        "dark_calibration": _dark_dicts(dark),
     }
     return SameDeviceResult(summaries[0], summaries[1], verdict, table, region.spec, parameters, warnings)
 
@@ -661,6 +669,30 @@ def _check_options(ageing_residual: str, options: dict[str, Any]) -> None:
     unknown = set(options) - _OPTIONS
     if unknown:
         raise UsageError(f"unknown option(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_OPTIONS))}")
+
+
+def _calibrated(set_a: Any, set_b: Any, dark: Any, names: tuple[str, str] | None, options: dict[str, Any]
+                ) -> tuple[Any, Any, dict[str, Any]]:
+    """The sets loaded dark-calibrated where a calibration is given (see :func:`same_device`), and the options with the
+    raw frames' full scale as the white level."""
+    if dark is None:
+        return set_a, set_b, options
+    pair = tuple(dark) if isinstance(dark, (tuple, list)) else (dark, dark)
+    if len(pair) != 2:
+        raise UsageError("dark: give one calibration for both sets or a pair (set A's, set B's)")
+    label = names if names is not None else (None, None)
+    sets = [s if cal is None else cal.calibrated_set(s, n) for s, cal, n in zip((set_a, set_b), pair, label)]
+    levels = {cal.white_level for cal in pair if cal is not None}
+    if len(levels) > 1:
+        raise InputError("the two dark sets have different full scales; the frames of both sets must have one type")
+    return sets[0], sets[1], ({"white_level": levels.pop(), **options} if levels else options)
+
+
+def _dark_dicts(dark: Any) -> Any:
+    if dark is None:
+        return None
+    pair = tuple(dark) if isinstance(dark, (tuple, list)) else (dark, dark)
+    return [None if cal is None else cal.to_dict() for cal in pair]
 
 
 def _open_sets(set_a: Any, set_b: Any, names: tuple[str, str] | None) -> tuple[ImageSet, ImageSet]:
