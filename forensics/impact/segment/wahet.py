@@ -82,7 +82,9 @@ def segment_wahet(
         ``(mean, sd)`` of the preferred radius of the inner and outer candidate relative to the first boundary
         (USIT: 0.66 ± 0.4 and 2.5 ± 1).
     min_support
-        Smallest edge support (fraction of angles whose contour point lies on a rise) of a trusted boundary.
+        Smallest edge support of a trusted boundary: the mean over its rays (the limbus: lateral sectors) of the
+        rise where the boundary crosses the ray, relative to the ray's strongest rise nearby — CAHT's measure and
+        threshold (:func:`~forensics.impact.segment.boundary.polar_fit`), so that 0.3 means the same for both.
     eyelids, lid_curvature, lid_support
         Look for the eyelid margins (:func:`~forensics.impact.segment.edges.find_eyelid`).
     """
@@ -110,9 +112,10 @@ def segment_wahet(
     outer = ellipse_candidate(smooth, spec, first, inside=False, prior=outer_prior)
     if inner is None and outer is None:
         return guess.failed("no second boundary")
+    # Each boundary's support as its role's: the pupil's over all angles, the limbus's over the lateral sectors.
     if outer is None or (inner is not None and inner[1] > outer[1]):
         pupil_e, iris_e = inner[0], first[0]
-        supports = (inner[2], first[1])
+        supports = (inner[2], first[2])
     else:
         pupil_e, iris_e = first[0], outer[0]
         supports = (first[1], outer[2])
@@ -240,14 +243,39 @@ def _fit_contour(rise: np.ndarray, start: np.ndarray, windows: tuple[int, int], 
     return cont
 
 
-def _support(rise: np.ndarray, cont: np.ndarray, rows: np.ndarray, tol: float) -> float:
-    """Fraction of the angles in ``rows`` whose strongest nearby rise lies within ``tol`` of the contour."""
-    cols = np.arange(rise.shape[1])
-    near = np.abs(cols[None, :] - cont[:, None]) <= 3 * tol
-    score = np.where(near, rise, -1.0)
-    best = np.argmax(score, axis=1)
-    ok = (np.abs(best - cont) <= tol) & (score[np.arange(rise.shape[0]), best] > 0)
-    return float(ok[rows].mean()) if rows.any() else 0.0
+def _agreement(rise: np.ndarray, valid: np.ndarray, index: np.ndarray, rows: np.ndarray, window: float) -> float:
+    """How well a boundary meets its rays' own strongest rises: CAHT's support (``boundary.polar_fit``'s score).
+
+    ``index`` is the boundary's (fractional) column in each row of ``rise``; each row's rise there is divided by
+    the row's largest rise within ``window`` columns of it and clipped to 0–1, and the mean is taken over the
+    ``rows`` whose boundary point is ``valid`` (in the image: rays leaving it neither support nor contradict).
+    A ray crossed by a lash or a lid scores low but cannot outvote the others, and a soft boundary (the limbus
+    is a ramp several pixels wide, so its rise peaks broadly) scores by how close to its peak the boundary runs,
+    not by whether the peak's argmax falls within a pixel or two.
+    """
+    n_rows, n_cols = rise.shape
+    r = np.arange(n_rows)
+    k0 = np.clip(np.floor(index).astype(np.int64), 0, n_cols - 2)
+    frac = np.clip(index - k0, 0.0, 1.0)
+    inside = rows & (index >= 0) & (index <= n_cols - 1) & valid[r, np.clip(np.rint(index).astype(np.int64), 0,
+                                                                             n_cols - 1)]
+    if not inside.any():
+        return 0.0
+    at = rise[r, k0] * (1 - frac) + rise[r, k0 + 1] * frac
+    cols = np.arange(n_cols)
+    top = np.where(np.abs(cols[None, :] - index[:, None]) <= window, rise, 0.0).max(axis=1)
+    norm = np.clip(at / np.where(top > 0, top, np.inf), 0.0, 1.0)
+    return float(norm[inside].mean())
+
+
+def _lateral_rows(theta: np.ndarray) -> np.ndarray:
+    """Angles within the :data:`LATERAL` sectors."""
+    deg = np.rad2deg(theta)
+    deg = np.where(deg > 315, deg - 360, deg)
+    rows = np.zeros(theta.size, bool)
+    for a0, a1 in LATERAL:
+        rows |= (deg >= a0) & (deg <= a1)
+    return rows
 
 
 def _fit_ellipse(x: np.ndarray, y: np.ndarray) -> Ellipse | None:
@@ -270,7 +298,11 @@ def _circle_of(ellipse: Ellipse) -> Circle:
 
 
 def first_boundary(smooth: np.ndarray, centre: tuple[float, float], spec: np.ndarray):
-    """The strongest boundary around ``centre`` in the polar transform: ``(ellipse, support)`` or None."""
+    """The strongest boundary around ``centre`` in the polar transform, or None.
+
+    Returns ``(ellipse, support over all angles, support over the lateral sectors)`` (:func:`_agreement`): the
+    first as a pupil's, the second as a limbus's, whose top and bottom the lids may hide.
+    """
     h, w = smooth.shape
     side = image_size(smooth.shape)
     cx, cy = centre
@@ -288,13 +320,18 @@ def first_boundary(smooth: np.ndarray, centre: tuple[float, float], spec: np.nda
     if energy.size == 0 or energy.max() <= 0:
         return None
     r0 = lo + int(np.argmax(energy))
-    cont = _fit_contour(rise, np.full(theta.size, float(r0)), (int(0.06 * side), max(2, int(0.02 * side))),
-                        lo, rs.size)
-    support = _support(rise, cont, np.ones(theta.size, bool), 1.5)
+    window = int(0.06 * side)
+    cont = _fit_contour(rise, np.full(theta.size, float(r0)), (window, max(2, int(0.02 * side))), lo, rs.size)
     ex = cx + cont * np.cos(theta)
     ey = cy - cont * np.sin(theta)
     ellipse = _fit_ellipse(ex, ey)
-    return None if ellipse is None else (ellipse, support)
+    if ellipse is None:
+        return None
+    # The support of the ellipse returned, not of the contour it was fitted to (rs are 1 px apart from 0).
+    index = ray_to_ellipse((cx, cy), ellipse, theta)
+    valid = inside & ~masked
+    return (ellipse, _agreement(rise, valid, index, np.ones(theta.size, bool), window),
+            _agreement(rise, valid, index, _lateral_rows(theta), window))
 
 
 def ellipse_candidate(smooth: np.ndarray, spec: np.ndarray, first, inside: bool, prior: tuple[float, float]):
@@ -303,7 +340,7 @@ def ellipse_candidate(smooth: np.ndarray, spec: np.ndarray, first, inside: bool,
     ``inside``: sought at ``ρ < 1`` over all angles, else at ``ρ > 1`` on the lateral sectors.  The energy is
     the mean rise along the fitted ellipse times the Gaussian prior on its ``ρ``.
     """
-    ellipse, _ = first
+    ellipse = first[0]
     h, w = smooth.shape
     side = image_size(smooth.shape)
     theta = _angles()
@@ -325,14 +362,7 @@ def ellipse_candidate(smooth: np.ndarray, spec: np.ndarray, first, inside: bool,
     polar = ndimage.map_coordinates(smooth, [py, px], order=1, mode="nearest")
     masked = ndimage.map_coordinates(spec.astype(np.float32), [py, px], order=0, mode="constant") > 0
     rise = np.where(valid & ~masked, _rise(polar, 3.0), 0.0)
-    deg = np.rad2deg(theta)
-    deg = np.where(deg > 315, deg - 360, deg)
-    if inside:
-        rows = np.ones(theta.size, bool)
-    else:
-        rows = np.zeros(theta.size, bool)
-        for a0, a1 in LATERAL:
-            rows |= (deg >= a0) & (deg <= a1)
+    rows = np.ones(theta.size, bool) if inside else _lateral_rows(theta)
     mu, sd = prior
     weight = np.exp(-0.5 * ((rhos - mu) / sd) ** 2)
     energy = rise[rows].sum(axis=0) * weight
@@ -341,7 +371,6 @@ def ellipse_candidate(smooth: np.ndarray, spec: np.ndarray, first, inside: bool,
     k0 = int(np.argmax(energy))
     win = (max(2, int(0.06 * side / (mean_r * drho))), max(2, int(0.02 * side / (mean_r * drho))))
     cont = _fit_contour(rise, np.full(theta.size, float(k0)), win, 0, rhos.size, weight_rows=rows)
-    support = _support(rise, cont, rows, 1.5 / (mean_r * drho))
     rho = rhos[0] + cont * drho
     ex = ellipse[0] + rho * base * np.cos(theta)
     ey = ellipse[1] - rho * base * np.sin(theta)
@@ -353,6 +382,7 @@ def ellipse_candidate(smooth: np.ndarray, spec: np.ndarray, first, inside: bool,
     idx = np.clip(np.rint((rr - rhos[0]) / drho).astype(int), 0, rhos.size - 1)
     along = float(rise[np.arange(theta.size), idx][rows].mean())
     prior_w = float(np.exp(-0.5 * ((np.median(rr[rows]) - mu) / sd) ** 2))
+    support = _agreement(rise, valid & ~masked, (rr - rhos[0]) / drho, rows, win[0])
     return fitted, along * prior_w, support
 
 
