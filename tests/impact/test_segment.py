@@ -33,7 +33,7 @@ def polar_texture(seed: int, shape: tuple[int, int] = (48, 512)) -> np.ndarray:
 
 def render_eye(pupil=PUPIL, iris=IRIS, texture_seed: int = 1, rotation: float = 0.0, noise_seed: int = 0,
                noise: float = 3.0, eyelid: float | None = 50.0, spot: tuple[float, float, float] | None = (10.0, -8.0, 5.0),
-               shape: tuple[int, int] = (240, 320)) -> np.ndarray:
+               shape: tuple[int, int] = (240, 320), limbus_width: float = 1.0) -> np.ndarray:
     """A 320×240 uint8 near-infrared eye with known geometry.
 
     Dark pupil disc (30), textured iris annulus (105 ± 22), brighter sclera (~175), an upper eyelid (185)
@@ -42,6 +42,8 @@ def render_eye(pupil=PUPIL, iris=IRIS, texture_seed: int = 1, rotation: float = 
     coordinates of the normalisation (angle about the pupil centre counter-clockwise on screen, radius
     normalised between the pupil circle and the limbus along that ray), turned by ``rotation`` radians,
     so that a rotation of ``2πk/240`` shifts a 240-column normalised texture by ``k`` columns.
+    ``limbus_width``: the width in pixels of the linear ramp from iris to sclera (1: a sharp, anti-aliased edge;
+    real near-infrared limbi are ramps of 10–20 px at this size).
     """
     h, w = shape
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -59,7 +61,7 @@ def render_eye(pupil=PUPIL, iris=IRIS, texture_seed: int = 1, rotation: float = 
     iris_tex = ndimage.map_coordinates(tex, [rho * (tex.shape[0] - 1), col], order=1, mode="grid-wrap")
     img = 175.0 + 0.05 * (xx - w / 2)
     # Anti-aliased layers (alpha = coverage of each pixel), painted back to front.
-    a = np.clip(ri - np.hypot(xx - xi, yy - yi) + 0.5, 0, 1)
+    a = np.clip((ri - np.hypot(xx - xi, yy - yi)) / limbus_width + 0.5, 0, 1)
     img = img * (1 - a) + (105.0 + 22.0 * iris_tex) * a
     a = np.clip(rp - dist + 0.5, 0, 1)
     img = img * (1 - a) + 30.0 * a

@@ -163,3 +163,54 @@ def test_segmentation_report_lists_each_problem_image_with_its_errors(tmp_path):
     limbus_error = circle_error(good.iris, marks["miss.png"].iris)[0]
     assert limbus_error > 3 and f"{limbus_error:.1f} px" in html
     assert len(list((tmp_path / "rep").glob("overlay_*.png"))) == 2
+
+
+# --------------------------------------------------------------------------- WAHET's boundary support
+def test_wahet_support_scores_where_the_boundary_meets_each_rays_strongest_rise():
+    from forensics.impact.segment.wahet import _agreement
+
+    cols = np.arange(100.0)
+    rise = np.tile(np.exp(-0.5 * ((cols - 50) / 4.0) ** 2), (8, 1))       # every ray: a soft rise peaking at 50
+    valid = np.ones_like(rise, dtype=bool)
+    rows = np.ones(8, dtype=bool)
+    assert _agreement(rise, valid, np.full(8, 50.0), rows, 10) == pytest.approx(1.0)
+    # One σ off the peak: the rise there relative to the ray's strongest, exp(−1/2), not "missed".
+    assert _agreement(rise, valid, np.full(8, 54.0), rows, 10) == pytest.approx(np.exp(-0.5), rel=1e-6)
+    # Nowhere near a rise (the ray's strongest within the window is its own tail): close to 0.
+    assert _agreement(rise, valid, np.full(8, 80.0), rows, 10) < 0.01
+    # Rays that leave the image, or lie outside the sectors asked for, neither support nor contradict.
+    off = np.full(8, 50.0)
+    off[:4] = 80.0
+    valid[:4, :] = False
+    assert _agreement(rise, valid, off, rows, 10) == pytest.approx(1.0)
+    assert _agreement(rise, np.ones_like(valid), off, np.arange(8) >= 4, 10) == pytest.approx(1.0)
+    assert _agreement(rise, np.ones_like(valid), off, rows, 10) == pytest.approx(0.5, abs=0.01)
+
+
+@pytest.mark.parametrize("width", [10.0, 15.0])
+@pytest.mark.parametrize("seed", range(3))
+def test_wahet_accepts_a_soft_limbus(width, seed):
+    # Real near-infrared limbi are ramps of 10–20 px from iris to sclera at 320 × 240.  WAHET's former support
+    # (the share of rays whose strongest rise lies within 1.5 px of the contour) rejected a correct circle on such
+    # ramps (here at width 10 seed 0, width 15 seeds 0 and 2; on the IITD eyes 60 of 62 rejections were correct).
+    img = render_eye(texture_seed=seed + 3, noise_seed=seed, limbus_width=width)
+    seg = segment_iris(img, "wahet")
+    assert seg.ok, seg.reason
+    assert circle_error(seg.pupil, PUPIL)[0] <= 2.0 and circle_error(seg.pupil, PUPIL)[1] <= 0.05
+    centre, radius = circle_error(seg.iris, IRIS)
+    # The ramp's middle is the truth; the steepest rise of a textured ramp may sit anywhere on its inner half, so
+    # the radius is held to half the ramp (7.5 % of 100 px).  The limbus's vertical position comes from its
+    # lateral sectors only (the lid hides its top) and is drawn towards the pupil's, 2 px lower here: 5 px.
+    assert radius <= 0.5 * width / IRIS[2] and centre <= 5.0, seg.iris
+
+
+@pytest.mark.parametrize("case", ["closed", "skin"])
+def test_wahet_still_rejects_an_eye_it_cannot_see_with_a_soft_limbus(case):
+    # The gentler support must not let a blink through: the lid over a soft-limbus eye, or skin alone.
+    if case == "closed":
+        img = render_eye(eyelid=IRIS[1] + IRIS[2] + 5, spot=None, limbus_width=15.0)
+    else:
+        rng = np.random.default_rng(4)
+        img = np.clip(160 + 0.2 * np.arange(320)[None, :] + rng.normal(0, 6, (240, 320)), 0, 255).astype(np.uint8)
+    seg = segment_iris(img, "wahet")
+    assert not seg.ok and seg.reason
