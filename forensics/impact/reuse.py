@@ -16,7 +16,8 @@ every pair involving it is computed.
 
 :class:`ScoredPairs` keeps one protocol's scores with the digests of its gallery and probe templates;
 :func:`best_base` picks the stored scores that leave the fewest pairs to compute; :func:`fill_upper` and
-:func:`fill_pairs` compute only those pairs (the others copied) and return every score.
+:func:`fill_pairs` compute only those pairs (the others copied) and return every score; :func:`upper_blocks`
+is :func:`fill_upper`'s plan of ``compare_all`` calls (counted by the full-scale benchmark).
 """
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ import numpy as np
 
 from forensics.impact.matchers import compare_all
 
-__all__ = ["ScoredPairs", "best_base", "fill_pairs", "fill_upper", "template_digest", "unchanged"]
+__all__ = ["ScoredPairs", "best_base", "fill_pairs", "fill_upper", "template_digest", "unchanged", "upper_blocks",
+           "upper_entries_computed"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,45 +132,56 @@ def _upper_offsets(n: int) -> np.ndarray:
     return r * n - r * (r + 1) // 2
 
 
-def fill_upper(matcher: Any, gallery: Sequence[Any], probe: Sequence[Any], rows_same: np.ndarray,
-               cols_same: np.ndarray, base: np.ndarray | None, band: int) -> tuple[np.ndarray, int]:
-    """Scores of every pair ``i < j`` (triu order): copied from ``base`` where row ``i`` and column ``j`` are
-    unchanged, computed otherwise.  Returns the scores and how many were computed.
+def upper_blocks(rows_same: np.ndarray, cols_same: np.ndarray, band: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ``compare_all`` calls that score every pair ``i < j`` not left to copy: ``(rows, columns)`` blocks.
 
-    Two kinds of calls of ``compare_all``, each in bands of at most ``band`` rows (a matcher prepares its column
-    templates once per call): every changed row against the columns right of its band's first row, and the
-    unchanged rows against the changed columns right of them.  A score is a function of its two templates,
-    so each equals the one the whole matrix would give (what ``_upper_scores`` computes).
+    Two kinds, each in bands of at most ``band`` rows (a matcher prepares its column templates once per call):
+    every changed row against the columns right of its band's first row, and the unchanged rows against the
+    changed columns right of the band's first row.  Their entries right of the diagonal are the pairs to
+    compute; the others are computed and not used (what :func:`upper_entries_computed` counts).
     """
-    n = len(gallery)
-    size = n * (n - 1) // 2
-    if base is not None and rows_same[:n - 1].all() and cols_same[1:].all():
-        return base, 0      # every pair copied: the stored array itself (never written to)
-    if base is None:
-        rows_same, cols_same = np.zeros(n, bool), np.zeros(n, bool)
-    out = np.array(base, dtype=np.float64, copy=True) if base is not None else np.empty(size, np.float64)
-    start = _upper_offsets(n)
-    computed = 0
+    n = rows_same.size
+    blocks = []
     changed_rows = np.flatnonzero(~rows_same[:n - 1])
     for k in range(0, changed_rows.size, band):
         rows = changed_rows[k:k + band]
-        first = int(rows[0])
-        block = np.asarray(compare_all(matcher, [gallery[r] for r in rows], list(probe[first + 1:])), np.float64)
-        for b, r in enumerate(rows):
-            out[start[r]:start[r] + n - 1 - r] = block[b, r - first:]
-            computed += n - 1 - int(r)
+        blocks.append((rows, np.arange(rows[0] + 1, n)))
     changed_cols = np.flatnonzero(~cols_same)
     if changed_cols.size:
         kept_rows = np.flatnonzero(rows_same[:int(changed_cols[-1])])
         for k in range(0, kept_rows.size, band):
             rows = kept_rows[k:k + band]
-            cols = changed_cols[changed_cols > rows[0]]
-            block = np.asarray(compare_all(matcher, [gallery[r] for r in rows], [probe[c] for c in cols]),
-                               np.float64)
-            rr, cc = np.meshgrid(rows, cols, indexing="ij")
-            right = cc > rr
-            out[start[rr[right]] + cc[right] - rr[right] - 1] = block[right]
-            computed += int(right.sum())
+            blocks.append((rows, changed_cols[changed_cols > rows[0]]))
+    return blocks
+
+
+def upper_entries_computed(rows_same: np.ndarray, cols_same: np.ndarray, band: int) -> int:
+    """Matrix entries :func:`fill_upper` computes (its blocks' sizes, slivers left of the diagonal included)."""
+    return sum(r.size * c.size for r, c in upper_blocks(rows_same, cols_same, band))
+
+
+def fill_upper(matcher: Any, gallery: Sequence[Any], probe: Sequence[Any], rows_same: np.ndarray,
+               cols_same: np.ndarray, base: np.ndarray | None, band: int) -> tuple[np.ndarray, int]:
+    """Scores of every pair ``i < j`` (triu order): copied from ``base`` where row ``i`` and column ``j`` are
+    unchanged, computed otherwise (:func:`upper_blocks`).  Returns the scores and how many pairs were computed.
+
+    A score is a function of its two templates, so each computed one equals the one the whole matrix would
+    give (what ``experiment._upper_scores`` computes).
+    """
+    n = len(gallery)
+    if base is None:
+        rows_same, cols_same = np.zeros(n, bool), np.zeros(n, bool)
+    elif rows_same[:n - 1].all() and cols_same[1:].all():
+        return base, 0      # every pair copied: the stored array itself (never written to)
+    out = np.array(base, dtype=np.float64, copy=True) if base is not None else np.empty(n * (n - 1) // 2)
+    start = _upper_offsets(n)
+    computed = 0
+    for rows, cols in upper_blocks(rows_same, cols_same, band):
+        block = np.asarray(compare_all(matcher, [gallery[r] for r in rows], [probe[c] for c in cols]), np.float64)
+        rr, cc = np.meshgrid(rows, cols, indexing="ij")
+        right = cc > rr
+        out[start[rr[right]] + cc[right] - rr[right] - 1] = block[right]
+        computed += int(right.sum())
     return out, computed
 
 

@@ -11,9 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from forensics.impact.experiment import _upper_scores
+from forensics.impact.experiment import _upper_scores, upper_entries
 from forensics.impact.iriscode import IrisCode
-from forensics.impact.reuse import ScoredPairs, best_base, fill_pairs, fill_upper, template_digest, unchanged
+from forensics.impact.reuse import (
+    ScoredPairs, best_base, fill_pairs, fill_upper, template_digest, unchanged, upper_entries_computed,
+)
 from forensics.impact.segment import Segmentation
 
 
@@ -153,3 +155,15 @@ def test_the_digest_covers_the_whole_template():
     assert template_digest(object()) is None
     assert template_digest((x, np.array([object()]))) is None
     assert not unchanged([None], [None]).any()
+
+
+@pytest.mark.parametrize("n, band", [(11, 3), (600, 256), (2240, 280)])
+def test_with_nothing_to_copy_the_plan_is_the_upper_triangles_bands(n, band):
+    # The full-scale benchmark counts entries with upper_entries_computed: with no stored scores it must be what
+    # the experiment's own banded upper triangle computes.
+    nothing = np.zeros(n, bool)
+    assert upper_entries_computed(nothing, nothing, band) == upper_entries(n, band)
+    # One changed template in the middle: its row right of it and its column above it, nothing else.
+    one = np.ones(n, bool)
+    one[n // 2] = False
+    assert upper_entries_computed(one, one, band) == (n - 1 - n // 2) + n // 2
