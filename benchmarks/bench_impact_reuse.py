@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import csv
 import hashlib
+import json
 import os
 import platform
 import sys
@@ -118,8 +119,9 @@ def run_structure(digests: dict, n_sensors: int, n_ages: int, lead: int = 0):
     return rep, [t for t in computed if t[1] == lead], {s: c for s, c in chains.items() if c}
 
 
-def replay(versions: dict, digests: dict, structure, names: list[str], n: int, band: int) -> dict[str, dict[str, int]]:
-    """Matrix entries computed and pairs computed / copied per algorithm, replaying the run's score reuse.
+def replay(versions: dict, digests: dict, structure, names: list[str], n: int, band: int) -> tuple[dict, dict]:
+    """Matrix entries computed and pairs computed / copied per algorithm, and the entries of every computed task
+    per algorithm, replaying the run's score reuse.
 
     ``versions[(digest, name)]`` are the template digests of a distinct set of aged images for one algorithm
     (already drawn to ``n`` images).  Mirrors ``experiment._score_cell``: per (algorithm, protocol) the stored
@@ -129,9 +131,10 @@ def replay(versions: dict, digests: dict, structure, names: list[str], n: int, b
     rep, first, chains = structure
     i, j = np.triu_indices(n, 1)
     out = {m: {"entries": 0, "computed": 0, "copied": 0} for m in names}
+    per_task: dict[tuple[int, int], dict[str, int]] = {}
 
-    def cell(key: bytes, enrol_key: bytes, bases: dict) -> dict:
-        made = {}
+    def cell(task: tuple[int, int], key: bytes, enrol_key: bytes, bases: dict) -> dict:
+        made, per_task[task] = {}, dict.fromkeys(names, 0)
         for m in names:
             probe, gallery0 = versions[key, m], versions[enrol_key, m]
             done: list[ScoredPairs] = []
@@ -144,18 +147,33 @@ def replay(versions: dict, digests: dict, structure, names: list[str], n: int, b
                     upper_entries_computed(rows, cols, band)
                 needed = int((~(rows[i] & cols[j])).sum()) if base is not None else i.size
                 out[m]["entries"] += entries
+                per_task[task][m] += entries
                 out[m]["computed"] += needed
                 out[m]["copied"] += i.size - needed
                 done.append(ScoredPairs(tuple(gallery), tuple(probe), np.empty(0)))
             made[m] = done
         return made
 
-    starts = {t: cell(digests[t], digests[t], {}) for t in first}
+    starts = {t: cell(t, digests[t], digests[t], {}) for t in first}
     for s, ages in chains.items():
         bases = starts[rep[s, 0]]
         for a in ages:
-            bases = cell(digests[s, a], digests[s, 0], bases)
-    return out
+            bases = cell((s, a), digests[s, a], digests[s, 0], bases)
+    return out, per_task
+
+
+def two_core_wall(first: list, chains: dict, cost: dict, workers: int = 2) -> float:
+    """Wall time of the run's two stages on ``workers`` processes: the first-age tasks, then the sensors' chains
+    longest first (as ``experiment._run_tasks`` submits them), each item to the first free worker."""
+    total = 0.0
+    longest_first = sorted(chains, key=lambda s: -len(chains[s]))
+    for items in ([[t] for t in first], [[(s, a) for a in chains[s]] for s in longest_first]):
+        free = [0.0] * workers
+        for item in items:
+            k = free.index(min(free))
+            free[k] += sum(cost[t] for t in item)
+        total += max(free)
+    return total
 
 
 def encode_cells(sets: dict, matchers) -> tuple[dict, float]:
@@ -237,6 +255,37 @@ def check_against_run(frames, sensors_spec: str, ages, names, segmentation, seed
         raise SystemExit("bench_impact_reuse: the replay does not match the run")
 
 
+def measure(images, sensors, ages, names, args) -> dict:
+    """Every measurement the projection needs (the slow part: ageing, encoding, timing)."""
+    digests, sets, digest_cpu = aged_cells(images, sensors, ages, args.seed)
+    matchers = load_matchers(names, segmentation=args.segmentation)
+    seg_cpu, feature_cpu, compare_cpu = time_encoding(images, matchers)
+    versions, hash_cpu = encode_cells(sets, matchers)
+    return {"digests": digests, "versions": versions, "digest_cpu": digest_cpu, "seg_cpu": seg_cpu,
+            "feature_cpu": feature_cpu, "compare_cpu": compare_cpu, "hash_cpu": hash_cpu,
+            "boot_cpu": time_bootstrap(args.seed), "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "load": os.getloadavg()[0]}
+
+
+def save_measurements(path: Path, settings: dict, m: dict) -> None:
+    """The measurements as JSON (digests in hex; no image data)."""
+    hexed = {**m, "digests": [[s, a, d.hex()] for (s, a), d in m["digests"].items()],
+             "versions": [[k.hex(), name, [v.hex() if v is not None else None for v in vs]]
+                          for (k, name), vs in m["versions"].items()]}
+    path.write_text(json.dumps({"settings": settings, "measurements": hexed}))
+
+
+def load_measurements(path: Path, settings: dict) -> dict:
+    stored = json.loads(path.read_text())
+    if stored["settings"] != settings:
+        raise SystemExit(f"{path}: measured with {stored['settings']}, not {settings}")
+    m = stored["measurements"]
+    m["digests"] = {(s, a): bytes.fromhex(d) for s, a, d in m["digests"]}
+    m["versions"] = {(bytes.fromhex(k), name): [bytes.fromhex(v) if v is not None else None for v in vs]
+                     for k, name, vs in m["versions"]}
+    return m
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -247,6 +296,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sensors", default=PAPER["sensors"])
     ap.add_argument("--algorithms", default=",".join(ALGORITHMS))
     ap.add_argument("--check", action="store_true", help="also run the experiment on the measured images")
+    ap.add_argument("--measurements", type=Path,
+                    help="JSON file keeping the measurements (timings, template digests): written when absent, "
+                         "read when present, so that the projection can be redone without measuring again")
     args = ap.parse_args(argv)
     if not (args.data / "manifest.csv").is_file():
         print(f"bench_impact_reuse: no manifest.csv in {args.data}; give --data", file=sys.stderr)
@@ -258,7 +310,17 @@ def main(argv: list[str] | None = None) -> int:
           f"load average {os.getloadavg()[0]:.1f}: {n} images of {args.data.name}, segmentation {args.segmentation}")
     sensors = parse_sensors(args.sensors, images[0].shape[:2], 8)
     t_start = time.process_time()
-    digests, sets, digest_cpu = aged_cells(images, sensors, ages, args.seed)
+    settings = {k: str(getattr(args, k)) for k in ("images", "segmentation", "seed", "sensors", "algorithms")}
+    if args.measurements and args.measurements.is_file():
+        m = load_measurements(args.measurements, settings)
+        print(f"measurements read from {args.measurements} (made {m['made']})")
+    else:
+        m = measure(images, sensors, ages, names, args)
+        if args.measurements:
+            save_measurements(args.measurements, settings, m)
+    digests, versions = m["digests"], m["versions"]
+    seg_cpu, feature_cpu, compare_cpu = m["seg_cpu"], m["feature_cpu"], m["compare_cpu"]
+    digest_cpu, hash_cpu, boot_cpu = m["digest_cpu"], m["hash_cpu"], m["boot_cpu"]
     structure = run_structure(digests, len(sensors), len(ages))
     rep, first, chains = structure
     tasks, distinct = len(rep), sum(1 for t in rep if rep[t] == t)
@@ -268,22 +330,17 @@ def main(argv: list[str] | None = None) -> int:
           + f"; distinct (sensor, age) tasks {distinct} of {tasks}: {len(first)} first-age, "
             f"{sum(len(c) for c in chains.values())} in the sensors' chains")
     print(f"digest pass: {1e3 * digest_cpu:.2f} ms CPU per aged image")
-
-    matchers = load_matchers(names, segmentation=args.segmentation)
-    seg_cpu, feature_cpu, compare_cpu = time_encoding(images, matchers)
-    versions, hash_cpu = encode_cells(sets, matchers)
-    boot_cpu = time_bootstrap(args.seed)
     print(f"segmentation: {1e3 * seg_cpu:.1f} ms CPU per image; template digest {1e6 * hash_cpu:.0f} µs CPU per "
           f"template; class bootstrap of one unit at 2,240 images: {boot_cpu:.2f} s CPU")
 
     # The replay at the measured size (what --check compares with the run), then at the paper's.
-    small = replay(versions, digests, structure, names, n, upper_band(n))
+    small, _ = replay(versions, digests, structure, names, n, upper_band(n))
     if args.check:
         check_against_run(frames, args.sensors, ages, names, args.segmentation, args.seed, small)
     big = PAPER["images"]
     draw = np.random.default_rng(args.seed).integers(n, size=big)
     drawn = {k: [v[d] for d in draw] for k, v in versions.items()}
-    scaled = replay(drawn, digests, structure, names, big, upper_band(big))
+    scaled, per_task = replay(drawn, digests, structure, names, big, upper_band(big))
 
     print("| algorithm | features ms/image | compare µs/entry | pairs copied (measured set) | entries computed at "
           "2,240, share of no score reuse |")
@@ -317,6 +374,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  + score reuse:         comparisons {compare_reused / 3600:.2f} h instead of "
           f"{distinct * compare_task / 3600:.2f} h, template digests {hashing / 3600:.2f} h: {scores / 3600:.1f} h "
           f"(2 cores: {scores / 7200:.1f} h; {whole / scores:.2f}× faster than whole-task reuse alone)")
+    task_cost = {t: encode + len(names) * big * hash_cpu * (1 if t in first else 2) + units * boot_cpu
+                 + sum(e * compare_cpu[m] for m, e in entries.items()) for t, entries in per_task.items()}
+    wall = digest_all / 2 + two_core_wall(first, chains, task_cost)
+    print(f"  on 2 worker processes (the first-age tasks, then one item per sensor's chain, longest first; the "
+          f"digest pass split): {wall / 3600:.1f} h (perfect halving: {scores / 7200:.1f} h)")
     parts = {"segmentation": distinct * segment_only, "features": distinct * (encode - segment_only),
              "comparisons": compare_reused, "bootstrap": boot, "digests (images, templates)": digest_all + hashing}
     print("  shares of the remaining work: " + ", ".join(f"{k} {v / scores:.0%}" for k, v in parts.items()))

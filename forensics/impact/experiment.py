@@ -761,7 +761,8 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
         first = [(s, a) for s, a in computed if a == lead]
         chains = {s: [a for t, a in computed if t == s and a != lead] for s in range(len(job.sensors))}
         chains = {s: ages for s, ages in chains.items() if ages}
-        stages: list[list[Any]] = [first, sorted(chains)]
+        # Longest chains first: with a few workers the last item to finish is then a short one.
+        stages: list[list[Any]] = [first, sorted(chains, key=lambda s: (-len(chains[s]), s))]
         job = dataclasses.replace(job, chains=chains)
     else:
         first = [(s, a) for s, a in computed if job.keep_enrol and a == lead]
