@@ -333,6 +333,18 @@ def main(argv: list[str] | None = None) -> int:
     print(f"segmentation: {1e3 * seg_cpu:.1f} ms CPU per image; template digest {1e6 * hash_cpu:.0f} µs CPU per "
           f"template; class bootstrap of one unit at 2,240 images: {boot_cpu:.2f} s CPU")
 
+    changed = {}
+    for s_index, spec in enumerate(sensors):
+        prev, steps = digests[s_index, 0], []
+        for a_index in chains.get(s_index, []):
+            now = digests[s_index, a_index]
+            steps.append(np.mean([x is None or x != y for name in names
+                                  for x, y in zip(versions[now, name], versions[prev, name])]))
+            prev = now
+        changed[spec.name] = f"{np.mean(steps):.0%} ({len(steps)} steps)" if steps else "-"
+    print("templates changed per step of a chain (previous computed age to the next; mean over steps and "
+          "algorithms): " + ", ".join(f"{k} {v}" for k, v in changed.items()))
+
     # The replay at the measured size (what --check compares with the run), then at the paper's.
     small, _ = replay(versions, digests, structure, names, n, upper_band(n))
     if args.check:

@@ -464,6 +464,7 @@ def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.nda
                 gallery_digests = probe_digests if gallery is probe else [template_digest(t) for t in gallery]
                 scores, done = _reused_scores(matcher, gallery, probe, gallery_digests, probe_digests, pairs,
                                               [*bases.get(matcher.name, ()), *made])
+                scores.flags.writeable = False   # kept for later ages (and maybe shared): nothing may alter it
                 made.append(ScoredPairs(tuple(gallery_digests), tuple(probe_digests), scores))
             else:
                 scores, done = _scores(matcher, gallery, probe, i, j, sampled), i.size
