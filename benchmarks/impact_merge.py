@@ -9,6 +9,8 @@ device and frame noise come from its own keyed stream (``keyed_generator(seed, 1
 resamples from ``keyed_generator(seed, 2)``, so a sensor's units do not depend on which other sensors a run
 had: units of ``--sensors A,…`` and ``--sensors G,H`` runs merge into exactly what one ``--sensors A,G,H`` run
 gives, and the trends and spreads are recomputed from the merged units (``experiment.trends``/``spreads``).
+A checkpoint's items are (sensor, age) tasks (``item-sensorSS-ageAAA.npz``) and, from runs with score reuse,
+chains of one sensor's later ages (``item-sensorSS-chain.npz``, its ``cells``); both are read.
 A run's reused (sensor, age) tasks have no item of their own (their aged images are byte for byte those of an
 earlier task).  Give the run's ``--json`` output after the folder (``CKPT:RUN.json``) and each missing item is
 taken from the one stored item whose units have exactly the run's EERs and intervals for that (sensor, age),
@@ -46,15 +48,27 @@ def _digest(config: dict, s_index: int, a_index: int) -> bytes:
     return _digest_task(job, (s_index, a_index))
 
 
-def _stand_in(folder: Path, config: dict, run: dict, s_index: int, a_index: int) -> Path:
-    """The stored item of a reused (sensor, age): equal units in the run's output and equal aged images."""
+def _stored_cells(folder: Path) -> dict[tuple[int, int], list]:
+    """The units of every (sensor index, age index) stored in a checkpoint, from task and chain items alike."""
+    cells = {}
+    for path in sorted(folder.glob("item-sensor*.npz")):
+        stored, s_index = safecodec.decode(path), int(path.stem[11:13])
+        if path.stem.endswith("-chain"):
+            cells.update({(s_index, int(a_index)): units for a_index, units in stored["cells"]})
+        else:
+            cells[s_index, int(path.stem[-3:])] = stored["units"]
+    return cells
+
+
+def _stand_in(folder: Path, config: dict, run: dict, cells: dict, s_index: int, a_index: int) -> tuple[int, int]:
+    """The stored (sensor, age) of a reused one: equal units in the run's output and equal aged images."""
     sensor, age = config["sensors"][s_index], config["ages"][a_index]
     want = sorted((u["matcher"], u["protocol"], u["eer"], tuple(u["ci"])) for u in run["units"]
                   if u["sensor"] == sensor and u["age"] == age)
-    hits = [p for p in sorted(folder.glob("item-*.npz")) if _fingerprint(safecodec.decode(p)["units"]) == want]
+    hits = [cell for cell, units in sorted(cells.items()) if _fingerprint(units) == want]
     if len(hits) > 1:  # equal EERs by coincidence: the aged images decide
         mine = _digest(config, s_index, a_index)
-        hits = [p for p in hits if _digest(config, int(p.stem[11:13]), int(p.stem[-3:])) == mine]
+        hits = [cell for cell in hits if _digest(config, *cell) == mine]
     if len(hits) != 1:
         raise SystemExit(f"{folder}: {len(hits)} stored items match sensor {sensor} at {age:g} years; expected one")
     return hits[0]
@@ -69,24 +83,26 @@ def merge(folders: list[Path], runs: list[dict | None]) -> ImpactResult:
             raise SystemExit(f"{folder}: other settings than {folders[0]}")
         config = config or c
         ages = c["ages"]
+        cells = _stored_cells(folder)
         for s_index, name in enumerate(c["sensors"]):
-            paths = [folder / f"item-sensor{s_index:02d}-age{a:03d}.npz" for a in range(len(ages))]
+            found: list[tuple[int, int] | None] = [(s_index, a) if (s_index, a) in cells else None
+                                                   for a in range(len(ages))]
             if run is not None and name in run["sensors"]:
-                for a_index, path in enumerate(paths):
-                    if not path.exists():
-                        paths[a_index] = _stand_in(folder, c, run, s_index, a_index)
-                        print(f"{folder}: sensor {name} at {ages[a_index]:g} years is {paths[a_index].name} (reused)")
-            if not paths[0].exists() and all(p.exists() for p in paths[1:]):
-                zero = sorted(folder.glob("item-sensor*-age000.npz"))
+                for a_index, cell in enumerate(found):
+                    if cell is None:
+                        found[a_index] = _stand_in(folder, c, run, cells, s_index, a_index)
+                        print(f"{folder}: sensor {name} at {ages[a_index]:g} years is sensor "
+                              f"{c['sensors'][found[a_index][0]]} at {ages[found[a_index][1]]:g} years (reused)")
+            if found[0] is None and all(found[1:]):
+                zero = sorted(cell for cell in cells if cell[1] == 0)
                 if zero:
-                    print(f"{folder}: sensor {name}'s age 0 is {zero[0].name} (reused by the run)")
-                    paths[0] = zero[0]
-            if not all(p.exists() for p in paths) or name in sensors:
-                print(f"{folder}: sensor {name} left out ({sum(p.exists() for p in paths)} of {len(ages)} ages)")
+                    print(f"{folder}: sensor {name}'s age 0 is sensor {c['sensors'][zero[0][0]]}'s (reused by the run)")
+                    found[0] = zero[0]
+            if not all(found) or name in sensors:
+                print(f"{folder}: sensor {name} left out ({sum(f is not None for f in found)} of {len(ages)} ages)")
                 continue
-            for a_index, path in enumerate(paths):
-                units += [dataclasses.replace(u, sensor=name, age=ages[a_index])
-                          for u in safecodec.decode(path)["units"]]
+            for a_index, cell in enumerate(found):
+                units += [dataclasses.replace(u, sensor=name, age=ages[a_index]) for u in cells[cell]]
             sensors.append(name)
     if not units:
         raise SystemExit("no complete sensor in these checkpoints")

@@ -120,5 +120,9 @@ def summary(result) -> str:
         lines.append(f"\n{result.resumed_units} results taken from the checkpoint")
     if result.reused_units:
         lines.append(f"{result.reused_units} results reused from a sensor and age with byte-identical aged images")
+    if result.copied_pairs:
+        share = result.copied_pairs / (result.copied_pairs + result.computed_pairs)
+        lines.append(f"{result.copied_pairs:,} comparisons ({share:.0%}) copied from byte-identical templates, "
+                     f"{result.computed_pairs:,} computed")
     lines.append(f"({result.elapsed_s:.1f} s)")
     return "\n".join(lines)

@@ -13,6 +13,7 @@ The stages, one module each, data flowing one way:
 ``evidence``      what models are fitted to (:class:`Evidence`): ``arrivals`` (counts, sites, the arrival
                   model's predictions), ``pixels`` (pixel classes, scene estimates, noise floor, variance
                   bins), ``singles`` (single dark frames: their noise law, cosmic-ray hits, misfits),
+                  ``reduced`` (light frames dark-subtracted before the check, named),
                   ``prediction`` (forward models), ``streams`` (Monte-Carlo streams)
 ``fit``           :func:`fit_model` → :class:`FittedModel` (``pixelfit``; the solvers ``local_solve`` and
                   ``joint_solve``; ``identifiability``; ``params``: new effects, never mutated ones)

@@ -62,8 +62,9 @@ def epoch_offsets(meas: Measurements, gids: list[int], noise: float,
     """Offsets and stuck candidates of one epoch from the conditions ``gids``.
 
     Stuck: the output does not follow the light — the same value in every frame (eq. 11 of the paper) or,
-    with temporal noise after the stuck value, a slope of output against scene level below one half —
-    although the light at that pixel changes by more than 10 noise σ across the epoch's conditions.
+    with temporal noise after the stuck value, a slope of output against scene level below one half and a
+    range of its mean output under half the light's — although the light at that pixel changes by more than
+    10 noise σ across the epoch's conditions.
     Offset d̂: the intercept of the pixel's residual from the scene estimate (or from ``reference``)
     regressed on scene level across the conditions, read at the lowest level (the mean residual where the
     level does not vary), so that a per-pixel gain ends in the slope, not in d̂.
@@ -86,7 +87,12 @@ def epoch_offsets(meas: Measurements, gids: list[int], noise: float,
         for g in gids:
             r = meas.repeated.index(g)
             dhat = np.minimum(dhat, np.minimum(*(m - scene_estimate(m) for m in (meas.mean_a[r], meas.mean_b[r]))))
-    flat = np.where(sxx > 0, slope, 0.0) < -0.5
+    # not following the light is not enough: a hot pixel in raw darks beside flats that the capture software had
+    # dark-subtracted (the 2017 STL-1001E series) reads 1,158 ADU in biases, 63,867 in a 300 s dark and the
+    # flats' level in the flats — a negative slope, but nothing like a constant; a stuck pixel's output range
+    # stays below half the light's, as its slope does
+    output = meas.mean_all[gids]
+    flat = (np.where(sxx > 0, slope, 0.0) < -0.5) & (output.max(0) - output.min(0) < 0.5 * spread)
     constant = ((meas.lo[gids].min(0) == meas.hi[gids].max(0)) | flat) & varies
     inside = dhat[meas.interior]
     # the spread of d̂ over the sensor can never be below what the temporal noise alone gives it (its standard

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from forensics.check.local_solve import common_mode, dead_columns, normal_matrix, scaled_pinv
+from forensics.check.local_solve import common_mode, common_mode_gram, dead_columns, normal_matrix, scaled_pinv
 from forensics.check.scene import kernel_estimate, kernel_transpose
 
 #: Conjugate gradients stop when the preconditioned residual's squared norm fell by this factor: the step is
@@ -86,10 +86,11 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
     coupled = [r for r in range(F.shape[0]) if np.any(F[r]) and any(np.any(z[r]) for z in Z)]
     inv = _cached_preconditioner(X, Z, F, weight, coupled, kernel_t, cache)
     centred_mask = np.asarray(centred, bool)
+    gram = common_mode_gram(inv, centred_mask) if centred_mask.any() else None
 
     def precondition(g: np.ndarray) -> np.ndarray:
         z = np.einsum("...ij,...j->...i", inv, np.moveaxis(g, 0, -1))
-        shift = common_mode(inv, z, centred_mask)
+        shift = common_mode(inv, z, centred_mask, gram)
         if shift is not None:
             z = z + shift
         return np.moveaxis(z, -1, 0)

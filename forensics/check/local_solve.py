@@ -56,7 +56,8 @@ def dead_columns(A: np.ndarray) -> np.ndarray:
     return diag <= 1e-12 * (diag.max() if diag.size else 1.0)
 
 
-def common_mode(inv: np.ndarray, coef: np.ndarray, centred: np.ndarray) -> np.ndarray | None:
+def common_mode(inv: np.ndarray, coef: np.ndarray, centred: np.ndarray,
+                gram: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray | None:
     """The per-pixel change of least-squares coefficients that makes the ``centred`` columns' coefficients
     sum to zero over the pixels (the constrained least-squares solution): ``− A⁺[:, C]·G⁻¹·Σ_p β_C`` with
     ``G = Σ_p A⁺[C, C]``.  ``inv`` (…, k, k) the per-pixel pseudo-inverses, ``coef`` (…, k) the coefficients.
@@ -65,15 +66,25 @@ def common_mode(inv: np.ndarray, coef: np.ndarray, centred: np.ndarray) -> np.nd
     with a global parameter (the DSNU's mean with a dark offset, the DCNU's with the mean dark rate).
     Unconstrained, the split between the two is arbitrary, and the global parameter is then fitted from
     whatever else touches it — the neighbours' scene estimates — and comes out biased.
+
+    ``gram``: :func:`common_mode_gram` of ``inv`` and ``centred``, when the caller applies one ``inv`` to many
+    coefficients (the joint solve's preconditioner, once per iteration: building it was a tenth of that solve).
     """
     cols = np.flatnonzero(centred)
     if cols.size == 0:
         return None
-    flat_inv = inv.reshape(-1, *inv.shape[-2:])
-    G = flat_inv[:, cols][:, :, cols].sum(axis=0)
+    inv_c, G = common_mode_gram(inv, centred) if gram is None else gram
     total = coef.reshape(-1, coef.shape[-1])[:, cols].sum(axis=0)
     lam = np.linalg.lstsq(G, total, rcond=None)[0]
-    return -np.einsum("...ic,c->...i", inv[..., :, cols], lam)
+    return -np.einsum("...ic,c->...i", inv_c, lam)
+
+
+def common_mode_gram(inv: np.ndarray, centred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What :func:`common_mode` needs of the pseudo-inverses ``inv`` alone: their ``centred`` columns
+    ``A⁺[:, C]`` (…, k, c) and ``G = Σ_p A⁺[C, C]`` (c, c)."""
+    cols = np.flatnonzero(centred)
+    flat_inv = inv.reshape(-1, *inv.shape[-2:])
+    return inv[..., :, cols], flat_inv[:, cols][:, :, cols].sum(axis=0)
 
 
 class PixelProjector:

@@ -23,6 +23,7 @@ from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.classes import CLASSES
 from forensics.check.frame_advice import design_warnings, light_levels
+from forensics.check.reduced import reduced_frame_warnings
 from forensics.check.diagnosis import diagnose
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel, fit_model
@@ -120,7 +121,7 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
     checks = [*error_rows, *pixel_rows, *covariate_rows, *variance_rows, *growth_rows, *spatial_rows]
     candidates, notes = diagnose(ev, fitted, candidate_names(fitted.effects))
     warn = (list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
-            + single_frame_warnings(ev, fitted))
+            + single_frame_warnings(ev, fitted) + reduced_frame_warnings(ev, fitted))
     unsettled = fitted.not_converged
     if unsettled:
         # not a result: no error or gof is reported for a fit that did not settle

@@ -7,7 +7,7 @@ rubber sheet); :mod:`~forensics.impact.matchers` holds the matcher interface, it
 :mod:`~forensics.impact.masek` (1-D Log-Gabor) and :mod:`~forensics.impact.ko` (cumulative sums);
 :mod:`~forensics.impact.experiment` ages a set with
 virtual sensors and measures the EER against age, with class-level bootstrap intervals and a paired trend
-test.  No figures: those are in :mod:`forensics.report.impact`.
+test; :mod:`~forensics.impact.reuse` lets it copy the scores of pairs whose templates did not change.  No figures: those are in :mod:`forensics.report.impact`.
 """
 import lazy_loader as _lazy
 
@@ -27,6 +27,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "dct": ["DctMatcher", "DctTemplate"],
         "cr": ["CrMatcher"],
         "cb": ["CbMatcher", "CbTemplate"],
+        "reuse": ["ScoredPairs", "template_digest"],
         "experiment": [
             "PROTOCOLS", "ImpactResult", "SensorSpec", "Spread", "Trend", "UnitResult", "parse_sensors", "run_impact",
         ],

@@ -18,8 +18,8 @@ slope of the EER on age) and the change from the first to the last age get paire
 called significant only when its interval excludes zero.  Across sensors (the paper's figure 6) the mean EER
 at each age gets a paired interval too, with the spread (standard deviation, range) beside it.
 
-Execution.  Every (sensor, age) is one task of the execution layer (:mod:`forensics._shared.parallel`): a
-worker realises the sensor's device from its keyed stream, reads the source images from their paths, ages
+Execution.  Every (sensor, age) is computed by a task of the execution layer (:mod:`forensics._shared.parallel`):
+a worker realises the sensor's device from its keyed stream, reads the source images from their paths, ages
 and encodes them, scores the pairs and runs the class bootstrap, and hands back the EERs.  Tasks at age 0 come
 first when the ``enrol-0`` protocol is asked for, because their templates are every later task's enrolment
 gallery (shipped to the workers once).  Nothing a task computes depends on which process runs it, so the
@@ -30,10 +30,22 @@ aged images of the IITD eyes, and at age 0 every noiseless sensor records the so
 pass ages every (sensor, age) and digests its images; of the tasks with byte-identical inputs only the first
 is computed and the others take its results (exactly: everything after the ageing is a deterministic function
 of the aged images).  Sensors with frame noise give distinct images at every age and are computed in full.
+Inside a computed task most *templates* are still byte-identical to those of the sensor's previous distinct
+age (a new defect lands in the sampled iris of only some images): the score of a pair whose two templates are
+byte-identical to those of a pair already scored is copied (:mod:`forensics.impact.reuse`; exact, the
+templates' complete content is hashed).  For that, every sensor's first age runs first, one task each, and then
+each sensor's later distinct ages run in age order in one work item holding only the previous age's scores;
+``computed_pairs`` and ``copied_pairs`` count the comparisons.  Parallelism is then across sensors.
 
-Resuming.  With a checkpoint folder (:class:`~forensics._shared.parallel.Checkpoint`), every finished
-(sensor, age) writes its results (and, at age 0, the enrolment templates) atomically; a rerun with the same
-settings skips them and gives the identical result.
+Memory of the score reuse: a work item holds the scores of the previous and the current age, n (n − 1) / 2
+float64 per matcher and protocol (2,240 images: 20 MB each, 480 MB at most for six matchers and both
+protocols), and every worker holds the first ages' scores its chains start from (240 MB per distinct first
+age), whatever the number of ages or sensors.
+
+Resuming.  With a checkpoint folder (:class:`~forensics._shared.parallel.Checkpoint`), every finished work item
+— a (sensor, age), or with reuse a sensor's chain of later ages — writes its results (and at the first age the
+enrolment templates and the scores the chains start from) atomically; a rerun with the same settings skips
+them and gives the identical result.
 """
 from __future__ import annotations
 
@@ -56,6 +68,7 @@ from forensics._shared.parallel import Checkpoint, Executor, in_process, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
 from forensics.impact.matchers import Matcher, compare_all, template_failure
+from forensics.impact.reuse import ScoredPairs, best_base, fill_pairs, fill_upper, template_digest
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
 from forensics.sensor.presets import PRESETS, preset
@@ -236,6 +249,10 @@ class ImpactResult:
     resumed_units: int = 0
     #: Units copied from a (sensor, age) whose aged images are byte for byte the same (see :func:`run_impact`).
     reused_units: int = 0
+    #: Comparisons scored, and comparisons whose score was copied because both templates are byte-identical to
+    #: those of a pair already scored (:mod:`forensics.impact.reuse`), over the computed (sensor, age) tasks.
+    computed_pairs: int = 0
+    copied_pairs: int = 0
     #: Segmentation method of each matcher that segments (``matcher.segmenter.method``), None for the others.
     segmentations: dict[str, str | None] = field(default_factory=dict)
 
@@ -262,6 +279,7 @@ class ImpactResult:
                 "seed": self.seed, "units": [u.to_dict() for u in self.units],
                 "trends": [t.to_dict() for t in self.trends], "spreads": [s.to_dict() for s in self.spreads],
                 "elapsed_s": self.elapsed_s, "resumed_units": self.resumed_units, "reused_units": self.reused_units,
+                "computed_pairs": self.computed_pairs, "copied_pairs": self.copied_pairs,
                 "segmentations": dict(self.segmentations), "forensics_version": __version__}
 
 
@@ -378,44 +396,109 @@ class _ImpactJob:
     reuse: bool = True
     #: Age-0 templates of every sensor (sensor index → matcher name → templates), the enrol-0 gallery.
     enrol: dict[int, dict[str, list[Any]]] | None = None
+    #: With reuse: the age indices each sensor's chain computes (:func:`_chain_task`), in order, and the scores
+    #: its chain starts from (sensor index → matcher name → :class:`~forensics.impact.reuse.ScoredPairs`).
+    chains: dict[int, list[int]] | None = None
+    starts: dict[int, dict[str, list[ScoredPairs]]] | None = None
 
 
 def _impact_task(job: _ImpactJob, item: tuple[int, int]) -> dict[str, Any]:
-    """One (sensor, age): age and encode every image, score every matcher and protocol, bootstrap the EERs.
+    """One (sensor, age) scored in full: age and encode every image, score every matcher and protocol, bootstrap.
 
-    Returns ``{"units": [UnitResult, …], "enrol": templates or None}``; the templates are kept only at age 0
-    and only when a later task needs them as its enrolment gallery.
+    Returns ``{"units": [UnitResult, …], "enrol": templates or None, "bases": scores or None, "computed": n,
+    "copied": n}``; the templates are kept only at age 0 and only when a later task needs them as its enrolment
+    gallery, the scores (:class:`~forensics.impact.reuse.ScoredPairs` per matcher) only with ``job.reuse``, as
+    the start of the sensors' chains (:func:`_chain_task`).
     """
     s_index, a_index = item
+    pairs = _pairs(job.labels, job.impostors, job.root)
+    units, templates, bases, computed, copied = _score_cell(job, s_index, a_index, pairs, {})
+    return {"units": units, "enrol": templates if job.ages[a_index] == 0.0 and job.keep_enrol else None,
+            "bases": bases if job.chains else None, "computed": computed, "copied": copied}
+
+
+def _chain_task(job: _ImpactJob, s_index: int) -> dict[str, Any]:
+    """Every distinct later (sensor, age) of one sensor, in age order, each reusing the scores of the one before.
+
+    A sensor's ages run one after the other in one work item so that each can copy the scores of pairs whose
+    templates did not change since the previous computed age (:mod:`forensics.impact.reuse`); the chain starts
+    from the scores of the sensor's first age (``job.starts``, computed first by :func:`_impact_task`).  Only
+    the previous age's scores are held, so memory does not grow with the number of ages.
+
+    Returns ``{"cells": [[age index, [UnitResult, …]], …], "computed": n, "copied": n}``.
+    """
+    pairs = _pairs(job.labels, job.impostors, job.root)
+    bases = (job.starts or {}).get(s_index, {})
+    cells, computed, copied = [], 0, 0
+    for a_index in (job.chains or {}).get(s_index, []):
+        units, _, bases, done, same = _score_cell(job, s_index, a_index, pairs, bases)
+        cells.append([a_index, units])
+        computed, copied = computed + done, copied + same
+    return {"cells": cells, "computed": computed, "copied": copied}
+
+
+def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.ndarray, np.ndarray, bool],
+                bases: dict[str, list[ScoredPairs]]) -> tuple[list[UnitResult], dict[str, list[Any]],
+                                                           dict[str, list[ScoredPairs]], int, int]:
+    """Units of one (sensor, age), its templates, its scores (with ``job.reuse``) and the pairs computed / copied.
+
+    With ``job.reuse`` every (matcher, protocol) starts from the stored scores (``bases``: the previous age's of
+    this sensor, and for ``enrol-0`` this age's ``same-age`` scores) that leave the fewest pairs to compute, and
+    copies the score of every pair whose two templates are byte-identical to the stored pair's.
+    """
+    i, j, sampled = pairs
     spec, age = job.sensors[s_index], job.ages[a_index]
     templates = _aged_templates(job, s_index, a_index)
-    # Recomputed here rather than shipped: for the paper's set the pair indices are 40 MB, their draw ~50 ms.
-    i, j, sampled = _pairs(job.labels, job.impostors, job.root)
     enrol = templates if age == 0.0 else (job.enrol or {}).get(s_index)
-    units = []
+    units, made_all, computed = [], {}, 0
     for matcher in job.matchers:
         probe = templates[matcher.name]
         probe_failed = _failed(probe)
         names = tuple(Path(job.paths[k]).name for k in np.flatnonzero(probe_failed))
+        probe_digests = [template_digest(t) for t in probe] if job.reuse else None
+        made: list[ScoredPairs] = []
         for protocol in job.protocols:
             gallery = probe if protocol == "same-age" else enrol[matcher.name]
             keep = ~(_failed(gallery)[i] | probe_failed[j])
-            scores = _scores(matcher, gallery, probe, i, j, sampled)
+            if job.reuse:
+                gallery_digests = probe_digests if gallery is probe else [template_digest(t) for t in gallery]
+                scores, done = _reused_scores(matcher, gallery, probe, gallery_digests, probe_digests, pairs,
+                                              [*bases.get(matcher.name, ()), *made])
+                scores.flags.writeable = False   # kept for later ages (and maybe shared): nothing may alter it
+                made.append(ScoredPairs(tuple(gallery_digests), tuple(probe_digests), scores))
+            else:
+                scores, done = _scores(matcher, gallery, probe, i, j, sampled), i.size
+            computed += done
             if not np.all(np.isfinite(scores[keep])):
                 raise InputError(f"matcher {matcher.name} returned a score that is not a finite number")
             scores = _reject_failed(scores, keep, matcher.higher_is_similar)
-            pairs = PairedScores.of(scores, job.labels[i], job.labels[j], job.n_classes,
-                                    higher_is_similar=matcher.higher_is_similar)
-            shown = pairs if keep.all() or not keep.any() else PairedScores.of(
+            scored = PairedScores.of(scores, job.labels[i], job.labels[j], job.n_classes,
+                                     higher_is_similar=matcher.higher_is_similar)
+            shown = scored if keep.all() or not keep.any() else PairedScores.of(
                 scores[keep], job.labels[i[keep]], job.labels[j[keep]], job.n_classes,
                 higher_is_similar=matcher.higher_is_similar)
             # The bootstrap's matrix products are BLAS calls; OpenBLAS gives the same bits whatever its thread
             # count (it never splits a dot product), so a worker's EERs equal the in-process ones.
             units.append(UnitResult(spec.name, age, matcher.name, protocol,
-                                    class_bootstrap_eer(pairs, job.weights, job.level),
+                                    class_bootstrap_eer(scored, job.weights, job.level),
                                     _histogram(shown, matcher.higher_is_similar), names,
                                     int((~keep).sum())))
-    return {"units": units, "enrol": templates if age == 0.0 and job.keep_enrol else None}
+        made_all[matcher.name] = made
+    total = i.size * len(job.matchers) * len(job.protocols)
+    return units, templates, made_all, computed, total - computed
+
+
+def _reused_scores(matcher: Matcher, gallery: Sequence[Any], probe: Sequence[Any],
+                   gallery_digests: list[bytes | None], probe_digests: list[bytes | None],
+                   pairs: tuple[np.ndarray, np.ndarray, bool], bases: list[ScoredPairs]) -> tuple[np.ndarray, int]:
+    """Scores of the run's pairs, copied from the best of ``bases`` where both templates are byte-identical to the
+    stored pair's, computed otherwise; and how many were computed."""
+    i, j, sampled = pairs
+    base, rows, cols = best_base(bases, gallery_digests, probe_digests, i, j)
+    stored = base.scores if base is not None else None
+    if sampled:
+        return fill_pairs(matcher, gallery, probe, i, j, rows, cols, stored)
+    return fill_upper(matcher, gallery, probe, rows, cols, stored, upper_band(len(gallery)))
 
 
 def _reject_failed(scores: np.ndarray, keep: np.ndarray, higher_is_similar: bool) -> np.ndarray:
@@ -577,14 +660,18 @@ def run_impact(
         Folder for resumable partial results (one file per finished sensor and age).  A folder made with
         other settings is refused (:class:`~forensics._shared.errors.UsageError`).
     progress
-        Progress wrapper; one bar counts the finished (sensor, age) tasks.
+        Progress wrapper; one bar counts the finished work items ((sensor, age) tasks, or with ``reuse`` the
+        sensors' first ages and then each sensor's later ages).
     executor
         Where the (sensor, age) tasks run (default: in this process); the result is the same on every backend.
     reuse
         Compute each distinct set of aged images once: a (sensor, age) whose aged images are byte for byte
         those of an earlier one (and, for ``enrol-0``, whose age-0 images are too) takes its results, under its
-        own sensor and age (``reused_units`` counts them).  The result is identical either way; False recomputes
-        everything (for checking that).
+        own sensor and age (``reused_units`` counts them); and copy the score of every pair whose two templates
+        are byte-identical to those of a pair scored at the sensor's previous computed age or, for ``enrol-0``,
+        at the same age (``copied_pairs``; ``computed_pairs`` are scored).  A sensor's later ages then run in age
+        order in one work item (a progress tick each), so the parallelism is across sensors.  The result is
+        identical either way; False recomputes everything (for checking that).
     """
     started = time.perf_counter()
     ages = sorted(float(a) for a in ages)  # trends read ages in order
@@ -616,12 +703,13 @@ def run_impact(
               "protocols": list(protocols), "n_boot": int(n_boot), "level": float(level), "impostors": impostors,
               "seed": seed_record(rng), "forensics_version": __version__}
     store = Checkpoint(checkpoint, config, inputs=job.paths) if checkpoint is not None else None
-    found, resumed, reused = _run_tasks(_usable_executor(resolve(executor), job), job, store, progress)
+    found, counts = _run_tasks(_usable_executor(resolve(executor), job), job, store, progress)
     units = [u for s in range(len(sensors)) for a in range(len(ages)) for u in found[s, a]]
     result = ImpactResult(str(source.root), len(source), len(class_names), n_genuine, int(i.size) - n_genuine,
                           sampled, [s.name for s in sensors], ages, names, list(protocols), int(n_boot),
-                          float(level), seed_record(rng), units, resumed_units=resumed, reused_units=reused,
-                          segmentations=segmentations)
+                          float(level), seed_record(rng), units, resumed_units=counts["resumed"],
+                          reused_units=counts["reused"], computed_pairs=counts["computed"],
+                          copied_pairs=counts["copied"], segmentations=segmentations)
     result.trends = trends(result)
     result.spreads = spreads(result)
     result.elapsed_s = time.perf_counter() - started
@@ -648,54 +736,76 @@ def _check_design(ages: list[float], matchers: Sequence[Matcher], protocols: Seq
 
 
 def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
-               progress: Progress) -> tuple[dict[tuple[int, int], list[UnitResult]], int, int]:
-    """Run every (sensor, age) task on ``ex``: the units of each, how many came from ``store``, how many were reused.
+               progress: Progress) -> tuple[dict[tuple[int, int], list[UnitResult]], dict[str, int]]:
+    """Run every (sensor, age) on ``ex``: the units of each, and counts of how they were obtained.
+
+    The counts: ``resumed`` units read from ``store``, ``reused`` units copied from a (sensor, age) with the same
+    aged images, ``computed`` and ``copied`` comparisons (pairs scored, pairs whose score was copied from
+    byte-identical templates).
 
     With ``job.reuse`` the aged images of every task are digested first (:func:`_digest_task`, cheap: ageing
     only), and of the tasks whose probe images — and, for ``enrol-0``, whose sensor's age-0 images — have the
     same digest only the first is computed; the others get its units under their own sensor and age.  Aged
     images change only when a defect appears or grows (sensor A: 3 distinct sets in 13 ages, and age 0 is the
-    source image for every noiseless sensor), so most of the work repeats byte-identical inputs.
-    With the enrol-0 protocol the age-0 tasks run first (their templates are the later tasks' gallery);
-    otherwise all tasks form one map.  Either way a task's result does not depend on the order.
+    source image for every noiseless sensor), so most of the work repeats byte-identical inputs.  The computed
+    tasks then run in two stages: every sensor's first age (age 0 with ``enrol-0``: its templates are the
+    enrolment gallery), one task each (:func:`_impact_task`); then one work item per sensor running its later
+    distinct ages in age order (:func:`_chain_task`), each copying the scores of unchanged templates from the age
+    before.  Without reuse every (sensor, age) is one task.  Either way a task's result does not depend on the
+    order or the process.
     """
     everything = [(s, a) for s in range(len(job.sensors)) for a in range(len(job.ages))]
     rep = _representatives(ex, job, everything, progress) if job.reuse else {t: t for t in everything}
     computed = [t for t in everything if rep[t] == t]
-    first = [(s, a) for s, a in computed if job.keep_enrol and job.ages[a] == 0.0]
-    stages = [first, [t for t in computed if t not in first]]
+    lead = job.ages.index(0.0) if job.keep_enrol else 0
+    if job.reuse:
+        first = [(s, a) for s, a in computed if a == lead]
+        chains = {s: [a for t, a in computed if t == s and a != lead] for s in range(len(job.sensors))}
+        chains = {s: ages for s, ages in chains.items() if ages}
+        # Longest chains first: with a few workers the last item to finish is then a short one.
+        stages: list[list[Any]] = [first, sorted(chains, key=lambda s: (-len(chains[s]), s))]
+        job = dataclasses.replace(job, chains=chains)
+    else:
+        first = [(s, a) for s, a in computed if job.keep_enrol and a == lead]
+        stages = [first, [t for t in computed if t not in first]]
+    def key(item: Any) -> str:
+        return f"sensor{item:02d}-chain" if isinstance(item, int) else f"sensor{item[0]:02d}-age{item[1]:03d}"
 
-    def key(task: tuple[int, int]) -> str:
-        return f"sensor{task[0]:02d}-age{task[1]:03d}"
-
-    bar = _OneBar(progress, len(computed), "impact: sensor × age")
+    bar = _OneBar(progress, sum(len(t) for t in stages), "impact: sensor × age")
     found: dict[tuple[int, int], list[UnitResult]] = {}
-    resumed = 0
-    for tasks in stages:
-        if not tasks:
+    counts = dict.fromkeys(("resumed", "reused", "computed", "copied"), 0)
+    for items in stages:
+        if not items:
             continue
-        keys = [key(t) for t in tasks]
+        keys = [key(t) for t in items]
         done = {k for k in keys if store is not None and store.has(k)}
-        outputs = ex.map(_impact_task, tasks, shared=job, progress=bar, desc="impact: sensor × age",
+        task = _chain_task if isinstance(items[0], int) else _impact_task
+        outputs = ex.map(task, items, shared=job, progress=bar, desc="impact: sensor × age",
                          checkpoint=store, keys=keys)
-        enrol_of: dict[tuple[int, int], dict[str, list[Any]]] = {}
-        for task, k, out in zip(tasks, keys, outputs):
-            found[task] = out["units"]
-            if k in done:
-                resumed += len(out["units"])
-            if out["enrol"] is not None:
-                enrol_of[task] = out["enrol"]
+        enrol_of, bases_of = {}, {}
+        for item, k, out in zip(items, keys, outputs):
+            cells = out["cells"] if "cells" in out else [[item[1], out["units"]]]
+            for a_index, units in cells:
+                found[item if isinstance(item, tuple) else (item, a_index)] = units
+                counts["resumed"] += len(units) if k in done else 0
+            counts["computed"] += out.get("computed", 0)   # absent from items of earlier versions' checkpoints
+            counts["copied"] += out.get("copied", 0)
+            if out.get("enrol") is not None:
+                enrol_of[item] = out["enrol"]
+            if out.get("bases") is not None:
+                bases_of[item] = out["bases"]
         if enrol_of:
-            zero = job.ages.index(0.0)
-            job = dataclasses.replace(job, enrol={s: enrol_of[rep[s, zero]] for s in range(len(job.sensors))})
+            job = dataclasses.replace(job, enrol={s: enrol_of[rep[s, lead]] for s in range(len(job.sensors))})
+        if bases_of:
+            job = dataclasses.replace(job, starts={s: bases_of[rep[s, lead]] for s in job.chains or {}
+                                                   if rep[s, lead] in bases_of})
     bar.close()
-    reused = 0
     for task in everything:
         if rep[task] != task:
             spec, age = job.sensors[task[0]], job.ages[task[1]]
             found[task] = [dataclasses.replace(u, sensor=spec.name, age=age) for u in found[rep[task]]]
-            reused += len(found[task])
-    return found, resumed, reused
+            counts["reused"] += len(found[task])
+    return found, counts
 
 
 def _representatives(ex: Executor, job: _ImpactJob, tasks: list[tuple[int, int]],

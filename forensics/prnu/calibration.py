@@ -336,6 +336,7 @@ def dark_pattern_share(raw: np.ndarray, group: DarkGroup, how: FrameCalibration,
     left out.  Returns ``(nan, inf, 0)`` when no pixel is usable.
     """
     from forensics.defects.darkseries import SATURATION_FRACTION
+    from forensics.stats.robust import origin_slope
 
     idx = group.probes
     if idx.size == 0:
@@ -350,12 +351,8 @@ def dark_pattern_share(raw: np.ndarray, group: DarkGroup, how: FrameCalibration,
     ok = (values < SATURATION_FRACTION * white_level) & (predicted > 0)
     if not ok.any():
         return math.nan, math.inf, 0
-    p, o = predicted[ok], observed[ok]
-    ss = float(np.dot(p, p))
-    share = float(np.dot(p, o) / ss)
-    resid = o - share * p
-    sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-    return share, sigma / math.sqrt(ss) if ss > 0 else math.inf, int(ok.sum())
+    share, se = origin_slope(predicted[ok], observed[ok])
+    return share, se, int(ok.sum())
 
 
 def dark_calibration(darks: "Dataset | str | os.PathLike", *, doubling_c: float | None = None, scale: str = "exposure",

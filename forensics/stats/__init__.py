@@ -1,7 +1,7 @@
 """Statistics shared by every domain: verification scores (ROC, EER, DET, bootstrap intervals; EERs whose
 comparisons share images resampled by class, ``clustered``), count
 statistics (exact Garwood / Clopper–Pearson / mid-p intervals, Poisson regression, trend tests, deviance),
-the moments of clipped and quantised readouts (near 0 and full scale), and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
+the moments of clipped and quantised readouts (near 0 and full scale), robust fits (``robust``), and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
 those are in :mod:`forensics.report.scores`.
 """
 import lazy_loader as _lazy
@@ -16,6 +16,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "poisson_glm", "trend_test", "laplace_trend_z",
         ],
         "censored": ["clipped_normal_moments", "readout_moments"],
+        "robust": ["origin_slope"],
         "clustered": ["ClassBootstrap", "PairedScores", "binned_eer", "class_bootstrap_eer", "class_weights"],
         "scores": [
             "BootstrapResult", "DetCurve", "EerResult", "OperatingPoint", "Roc", "as_scores", "auc",

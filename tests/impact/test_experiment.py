@@ -70,7 +70,8 @@ def _comparable(result) -> dict:
     out = result.to_dict()
     out.pop("elapsed_s")
     out.pop("resumed_units")
-    out.pop("reused_units")     # how the result was obtained, not what it is
+    for how in ("reused_units", "computed_pairs", "copied_pairs"):   # how the result was obtained, not what it is
+        out.pop(how)
     return out
 
 
@@ -180,3 +181,41 @@ def test_a_generator_gives_the_result_of_its_integer_seed(tmp_path):
     assert by_int[1:] == by_gen[1:]
     other = everything(6)
     assert other[2] != by_int[2] and other[3] != by_int[3]  # the frame noise and the resamples follow the seed
+
+
+class WindowMatcher:
+    """Pixels of a 12×12 window where the image is brightest (like an iris, at a place of each image's own):
+    a defect changes the templates of the images whose window it falls in, and only those."""
+
+    name = "window"
+    higher_is_similar = True
+
+    def encode(self, image: np.ndarray) -> np.ndarray:
+        means = image.astype(np.float64).reshape(SHAPE[0] // 4, 4, SHAPE[1] // 4, 4).mean(axis=(1, 3))
+        r, c = np.unravel_index(int(np.argmax(means)), means.shape)
+        r, c = min(4 * r, SHAPE[0] - 12), min(4 * c, SHAPE[1] - 12)
+        return image[r:r + 12, c:c + 12].astype(np.float64)
+
+    def compare(self, a: np.ndarray, b: np.ndarray) -> float:
+        return -float(np.abs(a - b).mean())
+
+
+@pytest.mark.parametrize("impostors", [None, 60])
+def test_scores_copied_from_identical_templates_give_the_result_of_computing_them(tmp_path, impostors):
+    # All pairs (the banded upper triangle) and a sample of impostor pairs (pair by pair: no compare_all), both
+    # protocols: the same result as computing every comparison, with scores copied across ages.  Low noise, so
+    # that a class's images share their window and the EER (0.17–0.44 here) moves with the defects.
+    source = _write_set(tmp_path / "src", classes=6, samples=3, noise=8.0)
+    sensors = parse_sensors("H*50", SHAPE, 8)
+    ages = [0.0, 16.0, 32.0, 48.0]
+    runs = {reuse: run_impact(source, sensors, ages, [WindowMatcher()], rng=4, n_boot=40, impostors=impostors,
+                              reuse=reuse) for reuse in (True, False)}
+    assert _comparable(runs[True]) == _comparable(runs[False])
+    for a, b in zip(runs[True].units, runs[False].units):
+        assert np.array_equal(a.eer.replicates, b.eer.replicates, equal_nan=True) and a.histogram == b.histogram
+    pairs = runs[False].computed_pairs // len(runs[False].units)
+    fast = runs[True]
+    assert fast.computed_pairs + fast.copied_pairs + pairs * fast.reused_units == runs[False].computed_pairs
+    assert fast.copied_pairs > pairs          # more than the enrol-0 protocol's copy of the age-0 scores
+    assert fast.computed_pairs > 2 * pairs    # and defects did change templates after age 0
+    assert len({u.eer.estimate for u in fast.units}) >= 3

@@ -159,3 +159,26 @@ def test_upper_triangle_scores_equal_the_full_matrix(templates, name, band):
         i, j = np.triu_indices(len(codes), 1)
         full = compare_all(matcher, enrol, probe)[i, j]
         assert np.array_equal(_upper_scores(matcher, enrol, probe, band), full)
+
+
+@pytest.mark.parametrize("name", list(ALGORITHMS))
+def test_scores_copied_from_identical_templates_equal_the_full_matrix(templates, name):
+    # The experiment's score reuse (forensics.impact.reuse) computes changed rows against contiguous columns and
+    # unchanged rows against a scattered subset of columns, and copies the rest: every score must still be the
+    # one the banded upper triangle gives, bit for bit (floating-point matchers included), in both protocols.
+    from forensics.impact.experiment import _upper_scores
+    from forensics.impact.reuse import ScoredPairs, best_base, fill_upper, template_digest
+
+    matcher, t = templates[name]
+    old = list(t.values())
+    new = list(old)
+    new[1], new[4] = old[-1], old[0]          # two positions whose template changed
+    digests = [template_digest(c) for c in new]
+    i, j = np.triu_indices(len(new), 1)
+    for gallery_old, gallery_new in ((old, new), (old, old)):      # same-age; enrol-0 (gallery kept)
+        stored = ScoredPairs(tuple(template_digest(c) for c in gallery_old), tuple(template_digest(c) for c in old),
+                             _upper_scores(matcher, gallery_old, old, 3))
+        base, rows, cols = best_base([stored], [template_digest(c) for c in gallery_new], digests, i, j)
+        scores, computed = fill_upper(matcher, gallery_new, new, rows, cols, base.scores, 3)
+        assert 0 < computed < i.size
+        assert np.array_equal(scores, _upper_scores(matcher, gallery_new, new, 3))

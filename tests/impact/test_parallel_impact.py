@@ -58,6 +58,8 @@ def assert_identical(a, b) -> None:
         d.pop("elapsed_s")
         d.pop("resumed_units")
         d.pop("reused_units")
+        d.pop("computed_pairs")
+        d.pop("copied_pairs")
     assert da == db
     assert len(a.units) == len(b.units)
     for ua, ub in zip(a.units, b.units):
@@ -193,22 +195,56 @@ class CountingMasek(MasekMatcher):
         return super().encode(image)
 
 
-def test_reusing_identical_aged_images_gives_the_identical_result(irises):
+REUSE_AGES = [0.0, 8.0, 16.0]
+
+
+def _reuse_sensors(source) -> list[SensorSpec]:
     # A and D add no frame noise: at age 0 both record the source image, and A's defects of year 8 are still all
     # it has at year 16 (3 distinct image sets in 13 ages on this set).  B+noise draws new noise every frame, so
-    # nothing of it can be reused.  Both protocols: enrol-0 reuse must also match the enrolment images.
-    shape = irises.shape()[:2]
-    sensors = [*parse_sensors("A,D", shape, 8), _sensors(irises)[0]]
-    ages = [0.0, 8.0, 16.0]
-    runs = {}
-    for reuse in (True, False):
-        masek = CountingMasek()
-        runs[reuse] = (run_impact(irises, sensors, ages, [masek, load_matcher("ko", masek.segmenter)], rng=SEED,
-                                  n_boot=N_BOOT, reuse=reuse), masek.encodes)
-    (fast, fast_encodes), (slow, slow_encodes) = runs[True], runs[False]
+    # nothing of it can be reused.
+    return [*parse_sensors("A,D", source.shape()[:2], 8), _sensors(source)[0]]
+
+
+@pytest.fixture(scope="module")
+def recomputed(irises):
+    """The reuse tests' run with every (sensor, age) and every comparison computed, and its encode count."""
+    masek = CountingMasek()
+    result = run_impact(irises, _reuse_sensors(irises), REUSE_AGES, [masek, load_matcher("ko", masek.segmenter)],
+                        rng=SEED, n_boot=N_BOOT, reuse=False)
+    return result, masek.encodes
+
+
+def test_reusing_identical_aged_images_gives_the_identical_result(irises, recomputed):
+    # Both protocols: enrol-0 reuse must also match the enrolment images.
+    masek = CountingMasek()
+    fast = run_impact(irises, _reuse_sensors(irises), REUSE_AGES, [masek, load_matcher("ko", masek.segmenter)],
+                      rng=SEED, n_boot=N_BOOT, reuse=True)
+    fast_encodes = masek.encodes
+    slow, slow_encodes = recomputed
     n = len(irises)
     assert slow_encodes == 3 * 3 * n and slow.reused_units == 0
     # The digests find at least D's age 0 (= A's) and A's year 16 (= its year 8); B+noise is computed in full.
     assert fast_encodes <= slow_encodes - 2 * n and fast.reused_units >= 2 * 2 * 2
     assert fast_encodes >= 3 * n + 2   # B+noise's 3 ages, plus at least A's first image set and its defects
     assert_identical(fast, slow)
+
+
+def test_reusing_the_scores_of_identical_templates_on_workers_gives_the_identical_result(irises, recomputed):
+    # The chains (one work item per sensor, its ages in order) on two worker processes, against every comparison
+    # computed in this process.  A defect lands in the sampled iris of only some images, so the later ages of A
+    # and D copy most of their scores from the age before; B+noise changes every template at every age.
+    with Executor("processes", workers=2) as ex:
+        fast = run_impact(irises, _reuse_sensors(irises), REUSE_AGES, load_matchers(["masek", "ko"]), rng=SEED,
+                          n_boot=N_BOOT, executor=ex)
+    slow, _ = recomputed
+    assert_identical(fast, slow)
+    pairs = len(irises) * (len(irises) - 1) // 2
+    per_unit = pairs                         # every comparison of a unit: the pairs i < j
+    assert slow.copied_pairs == 0 and slow.computed_pairs == per_unit * len(slow.units)
+    # Every unit's comparisons were computed, copied, or came with a whole (sensor, age) of identical images.
+    assert fast.computed_pairs + fast.copied_pairs + per_unit * fast.reused_units == slow.computed_pairs
+    # Beyond the enrol-0 protocol at age 0 (its gallery is the same-age one: all copied, in the two age-0 tasks
+    # computed, A's and B+noise's), scores were copied across ages: A's and D's defects.
+    age0_copies = 2 * 2 * pairs
+    assert fast.copied_pairs > age0_copies
+    assert fast.computed_pairs < slow.computed_pairs - per_unit * fast.reused_units

@@ -1,0 +1,205 @@
+"""Exact reuse of comparison scores between byte-identical templates (the impact experiment's inner reuse).
+
+When a virtual sensor gains a defect every aged image changes (the defect sits at the same pixel of every
+image), but the defect lands in the sampled iris annulus of only some images: most *templates* of a
+(sensor, age) are byte for byte those of the sensor's previous distinct age.  A comparison is a function of
+its two templates (and of the matcher's settings, fixed for a run), so the score of a pair whose two
+templates are byte-identical to those of a pair already scored is that pair's score: it is copied, not
+recomputed.
+
+Exact by construction: a template's digest (:func:`template_digest`) is the SHA-256 of its complete content —
+every array's dtype, shape, strides and bytes, every scalar's type and exact value, every field of a
+dataclass (the segmentation an :class:`~forensics.impact.iriscode.IrisCode` carries included), recursively.
+A score is copied only where *both* digests equal those of the already-scored pair at the same position; a
+template of a type the digest does not know (a user's class that is not a dataclass, say) has no digest, and
+every pair involving it is computed.
+
+:class:`ScoredPairs` keeps one protocol's scores with the digests of its gallery and probe templates;
+:func:`best_base` picks the stored scores that leave the fewest pairs to compute; :func:`fill_upper` and
+:func:`fill_pairs` compute only those pairs (the others copied) and return every score; :func:`upper_blocks`
+is :func:`fill_upper`'s plan of ``compare_all`` calls (counted by the full-scale benchmark).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from forensics.impact.matchers import compare_all
+
+__all__ = ["ScoredPairs", "best_base", "fill_pairs", "fill_upper", "template_digest", "unchanged", "upper_blocks",
+           "upper_entries_computed"]
+
+
+@dataclass(frozen=True, eq=False)
+class ScoredPairs:
+    """The scores of the run's pairs ``(gallery[i], probe[j])`` with the digests of the templates compared.
+
+    ``gallery`` and ``probe`` hold :func:`template_digest` of every template (None: no digest, never reused);
+    ``scores`` the float64 scores of the run's pairs, in the run's pair order.
+    """
+
+    gallery: tuple[bytes | None, ...]
+    probe: tuple[bytes | None, ...]
+    scores: np.ndarray
+
+
+def template_digest(template: Any) -> bytes | None:
+    """SHA-256 of a template's complete content, or None for a template holding a type it does not know.
+
+    Known: None, bool, int, float (its exact bits), complex, str, bytes, numpy arrays and scalars (dtype,
+    shape, strides and bytes; object arrays are unknown), tuples, lists, dicts (in their order) and dataclass
+    instances (their class and every attribute).  Two templates with the same digest are equal value by value,
+    in the same types and memory layout, so a deterministic comparator gives them the same score.
+    """
+    digest = hashlib.sha256()
+    return digest.digest() if _feed(digest, template) else None
+
+
+def _feed(digest: Any, value: Any) -> bool:
+    """Add ``value`` to ``digest`` with its type; False when a part of it is of an unknown type."""
+    tag = f"{type(value).__module__}.{type(value).__qualname__}|".encode()
+    digest.update(tag)
+    if isinstance(value, (np.ndarray, np.generic)):
+        a = np.asarray(value)
+        if a.dtype.hasobject:
+            return False
+        digest.update(f"{a.dtype.str}{a.shape}{a.strides}".encode())
+        digest.update(np.ascontiguousarray(a).tobytes())
+        return True
+    if value is None or isinstance(value, (bool, int, str)):
+        digest.update(repr(value).encode() + b";")
+        return True
+    if isinstance(value, float):
+        digest.update(struct.pack("<d", value))   # the exact bits (repr would merge NaN payloads)
+        return True
+    if isinstance(value, complex):
+        digest.update(struct.pack("<dd", value.real, value.imag))
+        return True
+    if isinstance(value, (bytes, bytearray)):
+        digest.update(f"{len(value)}:".encode() + bytes(value))
+        return True
+    if isinstance(value, (tuple, list)):
+        digest.update(f"{len(value)}[".encode())
+        return all(_feed(digest, item) for item in value)
+    if isinstance(value, dict):
+        digest.update(f"{len(value)}{{".encode())
+        return all(_feed(digest, k) and _feed(digest, v) for k, v in value.items())
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        # Every attribute, not only the fields: a cached value stored on the instance is content too.
+        state = dict(vars(value)) if hasattr(value, "__dict__") else {}
+        state.update({f.name: getattr(value, f.name) for f in dataclasses.fields(value)})
+        digest.update(f"{len(state)}(".encode())
+        return all(_feed(digest, k) and _feed(digest, state[k]) for k in sorted(state))
+    return False
+
+
+def unchanged(now: Sequence[bytes | None], before: Sequence[bytes | None]) -> np.ndarray:
+    """Which positions hold a template byte-identical to the one before (both digests known and equal)."""
+    return np.array([a is not None and a == b for a, b in zip(now, before, strict=True)], dtype=bool)
+
+
+def _needed(rows_same: np.ndarray, cols_same: np.ndarray, i: np.ndarray, j: np.ndarray) -> int:
+    """How many of the pairs ``(i, j)`` must be computed when rows ``rows_same`` and columns ``cols_same`` are
+    unchanged."""
+    return int((~(rows_same[i] & cols_same[j])).sum())
+
+
+def best_base(bases: Sequence[ScoredPairs], gallery: Sequence[bytes | None], probe: Sequence[bytes | None],
+              i: np.ndarray, j: np.ndarray) -> tuple[ScoredPairs | None, np.ndarray, np.ndarray]:
+    """The stored scores leaving the fewest pairs to compute, with its unchanged rows and columns.
+
+    Returns ``(None, all False, all False)`` when there is no base (every pair is computed).
+    """
+    best: tuple[int, ScoredPairs | None, np.ndarray, np.ndarray] = (
+        i.size + 1, None, np.zeros(len(gallery), bool), np.zeros(len(probe), bool))
+    for base in bases:
+        rows, cols = unchanged(gallery, base.gallery), unchanged(probe, base.probe)
+        needed = _needed(rows, cols, i, j)
+        if needed < best[0]:
+            best = (needed, base, rows, cols)
+    return best[1], best[2], best[3]
+
+
+def _upper_offsets(n: int) -> np.ndarray:
+    """Position of pair ``(r, r + 1)`` in :func:`numpy.triu_indices` ``(n, 1)`` order, for every row ``r``."""
+    r = np.arange(n, dtype=np.int64)
+    return r * n - r * (r + 1) // 2
+
+
+def upper_blocks(rows_same: np.ndarray, cols_same: np.ndarray, band: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ``compare_all`` calls that score every pair ``i < j`` not left to copy: ``(rows, columns)`` blocks.
+
+    Two kinds, each in bands of at most ``band`` rows (a matcher prepares its column templates once per call):
+    every changed row against the columns right of its band's first row, and the unchanged rows against the
+    changed columns right of the band's first row.  Their entries right of the diagonal are the pairs to
+    compute; the others are computed and not used (what :func:`upper_entries_computed` counts).
+    """
+    n = rows_same.size
+    blocks = []
+    changed_rows = np.flatnonzero(~rows_same[:n - 1])
+    for k in range(0, changed_rows.size, band):
+        rows = changed_rows[k:k + band]
+        blocks.append((rows, np.arange(rows[0] + 1, n)))
+    changed_cols = np.flatnonzero(~cols_same)
+    if changed_cols.size:
+        kept_rows = np.flatnonzero(rows_same[:int(changed_cols[-1])])
+        for k in range(0, kept_rows.size, band):
+            rows = kept_rows[k:k + band]
+            blocks.append((rows, changed_cols[changed_cols > rows[0]]))
+    return blocks
+
+
+def upper_entries_computed(rows_same: np.ndarray, cols_same: np.ndarray, band: int) -> int:
+    """Matrix entries :func:`fill_upper` computes (its blocks' sizes, slivers left of the diagonal included)."""
+    return sum(r.size * c.size for r, c in upper_blocks(rows_same, cols_same, band))
+
+
+def fill_upper(matcher: Any, gallery: Sequence[Any], probe: Sequence[Any], rows_same: np.ndarray,
+               cols_same: np.ndarray, base: np.ndarray | None, band: int) -> tuple[np.ndarray, int]:
+    """Scores of every pair ``i < j`` (triu order): copied from ``base`` where row ``i`` and column ``j`` are
+    unchanged, computed otherwise (:func:`upper_blocks`).  Returns the scores and how many pairs were computed.
+
+    A score is a function of its two templates, so each computed one equals the one the whole matrix would
+    give (what ``experiment._upper_scores`` computes).
+    """
+    n = len(gallery)
+    if base is None:
+        rows_same, cols_same = np.zeros(n, bool), np.zeros(n, bool)
+    elif rows_same[:n - 1].all() and cols_same[1:].all():
+        return base, 0      # every pair copied: the stored array itself (never written to)
+    out = np.array(base, dtype=np.float64, copy=True) if base is not None else np.empty(n * (n - 1) // 2)
+    start = _upper_offsets(n)
+    computed = 0
+    for rows, cols in upper_blocks(rows_same, cols_same, band):
+        block = np.asarray(compare_all(matcher, [gallery[r] for r in rows], [probe[c] for c in cols]), np.float64)
+        rr, cc = np.meshgrid(rows, cols, indexing="ij")
+        right = cc > rr
+        out[start[rr[right]] + cc[right] - rr[right] - 1] = block[right]
+        computed += int(right.sum())
+    return out, computed
+
+
+def fill_pairs(matcher: Any, gallery: Sequence[Any], probe: Sequence[Any], i: np.ndarray, j: np.ndarray,
+               rows_same: np.ndarray, cols_same: np.ndarray, base: np.ndarray | None) -> tuple[np.ndarray, int]:
+    """Scores of the listed pairs ``(gallery[i], probe[j])`` (a sample of the pairs): copied from ``base`` where
+    both templates are unchanged, the others computed (one ``compare_all`` over their rows and columns, or
+    pair by pair for matchers without one).  Returns the scores and how many were computed."""
+    todo = np.ones(i.size, bool) if base is None else ~(rows_same[i] & cols_same[j])
+    out = np.array(base, dtype=np.float64, copy=True) if base is not None else np.empty(i.size, np.float64)
+    if not todo.any():
+        return out, 0
+    ti, tj = i[todo], j[todo]
+    if hasattr(matcher, "compare_all"):
+        rows, row_at = np.unique(ti, return_inverse=True)
+        cols, col_at = np.unique(tj, return_inverse=True)
+        block = np.asarray(compare_all(matcher, [gallery[r] for r in rows], [probe[c] for c in cols]), np.float64)
+        out[todo] = block[row_at, col_at]
+    else:
+        out[todo] = [float(matcher.compare(gallery[a], probe[b])) for a, b in zip(ti, tj)]
+    return out, int(todo.sum())
