@@ -9,6 +9,8 @@ for every fit), so every model's result is the same on every backend.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import pickle
 import warnings
@@ -23,7 +25,7 @@ from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.classes import CLASSES
 from forensics.check.frame_advice import design_warnings, light_levels
-from forensics.check.reduced import reduced_frame_warnings
+from forensics.check.reduced import PatternShare, dark_pattern_shares, reduced_frame_warnings
 from forensics.check.diagnosis import diagnose
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel, fit_model
@@ -120,8 +122,9 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
                   for n in [int(np.sum(ev.usable & (px.classes == CLASSES.index(name))))]]
     checks = [*error_rows, *pixel_rows, *covariate_rows, *variance_rows, *growth_rows, *spatial_rows]
     candidates, notes = diagnose(ev, fitted, candidate_names(fitted.effects))
+    shares = [] if fitted.not_converged else dark_pattern_shares(ev, fitted)
     warn = (list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
-            + single_frame_warnings(ev, fitted) + reduced_frame_warnings(ev, fitted))
+            + single_frame_warnings(ev, fitted) + reduced_frame_warnings(shares))
     unsettled = fitted.not_converged
     if unsettled:
         # not a result: no error or gof is reported for a fit that did not settle
@@ -143,7 +146,7 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
         checks=checks,
         candidates=candidates,
         warnings=warn,
-        data=_data_summary(ev, fitted),
+        data=_data_summary(ev, fitted, shares),
         plots=_plot_data(ev, fitted, consistency, covariates, ripley),
         structure=residual_structure(ev, fitted),
     )
@@ -170,9 +173,10 @@ def _plot_data(ev: Evidence, fitted: FittedModel, consistency: np.ndarray, covar
     return PlotData(residual_map, rms_map, consistency, px.classes[-1], covariates, counts_plot, ripley, variance_plot)
 
 
-def _data_summary(ev: Evidence, fitted: FittedModel) -> dict[str, Any]:
+def _data_summary(ev: Evidence, fitted: FittedModel, shares: list[PatternShare]) -> dict[str, Any]:
     meas, px, defects = ev.meas, fitted.pixels, ev.defects
     return {"folder": str(meas.root), "frames": meas.n_frames, "conditions": len(meas.groups),
+            "dark_pattern_share": [dataclasses.asdict(s) for s in shares],
             "repeated_conditions": len(meas.repeated), "single_frames": singles_summary(meas, ev.singles),
             "dark_series": None if fitted.not_converged else dark_figures(ev, fitted),
             "epochs": [float(t) for t in ev.times],

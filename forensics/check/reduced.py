@@ -71,13 +71,11 @@ def dark_pattern_shares(ev: Evidence, fitted: FittedModel) -> list[PatternShare]
     return out
 
 
-def reduced_frame_warnings(ev: Evidence, fitted: FittedModel) -> list[str]:
-    """Light conditions whose frames carry clearly less than half the dark pattern the dark frames predict:
-    dark-subtracted already, which a raw sensor's model cannot follow.  None for a fit that did not settle."""
-    if fitted.not_converged:
-        return []
+def reduced_frame_warnings(shares: list[PatternShare]) -> list[str]:
+    """The light conditions (of :func:`dark_pattern_shares`) whose frames carry clearly less than half the dark
+    pattern the dark frames predict: dark-subtracted already, which a raw sensor's model cannot follow."""
     return [f"the frames of condition '{s.label}' carry {s.share:.2f} ± {s.se:.2f} of the dark pattern the dark "
             f"frames predict at their {s.pixels} hottest pixels (raw frames: 1): they look dark-subtracted "
             "already (a capture program's auto-dark?), which the model of a raw sensor cannot follow — give raw "
             "frames, or leave these out"
-            for s in dark_pattern_shares(ev, fitted) if s.share + SHARE_Z * s.se < 0.5]
+            for s in shares if s.share + SHARE_Z * s.se < 0.5]

@@ -9,11 +9,13 @@ dark pattern (30 pixels of 3–30 ADU/s at −10 °C, 23 s at −5 °C: δ ≈ 1
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 
+from forensics._shared.jsonsafe import dumps
 from forensics.check.fit import fit_model
-from forensics.check.pipeline import base_model, prepare, resolve_effects
+from forensics.check.pipeline import base_model, prepare, resolve_effects, run_check
 from forensics.check.reduced import dark_pattern_shares, reduced_frame_warnings
 from forensics.fixtures.darkseries import DarkSeriesDesign, make_dark_series
 
@@ -41,7 +43,7 @@ def test_raw_flats_carry_the_whole_dark_pattern_and_are_not_named(raw_and_reduce
     (share,) = dark_pattern_shares(ev, fitted)  # one light condition: the flats
     assert share.pixels >= 20 and share.se < 0.1
     assert abs(share.share - 1.0) < 4 * share.se + 0.05  # + the fitted pattern's own error (a few %)
-    assert reduced_frame_warnings(ev, fitted) == []
+    assert reduced_frame_warnings([share]) == []
 
 
 def test_dark_subtracted_flats_carry_none_of_it_and_are_named(raw_and_reduced):
@@ -50,5 +52,15 @@ def test_dark_subtracted_flats_carry_none_of_it_and_are_named(raw_and_reduced):
     (share,) = dark_pattern_shares(ev, fitted)
     assert share.se < 0.1
     assert abs(share.share) < 4 * share.se + 0.05
-    (warning,) = reduced_frame_warnings(ev, fitted)
+    (warning,) = reduced_frame_warnings([share])
     assert "dark-subtracted" in warning and "flat" in warning
+
+
+def test_the_check_reports_the_shares_in_its_data_and_names_the_reduced_flats(raw_and_reduced):
+    _, (ev, fitted) = raw_and_reduced
+    result = run_check(ev, fitted.effects)
+    (entry,) = result.data["dark_pattern_share"]
+    assert set(entry) == {"label", "share", "se", "pixels"} and "flat" in entry["label"]
+    assert abs(entry["share"]) < 4 * entry["se"] + 0.05
+    assert sum("dark-subtracted" in w for w in result.warnings) == 1
+    json.loads(dumps(result.to_dict()))  # standard JSON, as --json writes it
