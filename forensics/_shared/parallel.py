@@ -437,7 +437,10 @@ class Executor:
                 _stop_workers(pool)
                 raise
             finally:
+                manager = getattr(pool, "_executor_manager_thread", None)
                 pool.shutdown(wait=not broken, cancel_futures=True)
+                if broken and manager is not None:  # its wake-up pipe closes as the interpreter may exit: see below
+                    manager.join(10.0)
 
     def _dask_completions(self, fn: Callable[..., Any], items: list[Any], todo: list[int],
                           shared: Any) -> Iterator[tuple[int, Any]]:
