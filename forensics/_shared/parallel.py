@@ -437,10 +437,7 @@ class Executor:
                 _stop_workers(pool)
                 raise
             finally:
-                manager = getattr(pool, "_executor_manager_thread", None)
-                pool.shutdown(wait=not broken, cancel_futures=True)
-                if broken and manager is not None:  # its wake-up pipe closes as the interpreter may exit: see below
-                    manager.join(10.0)
+                _shutdown(pool, wait=not broken)
 
     def _dask_completions(self, fn: Callable[..., Any], items: list[Any], todo: list[int],
                           shared: Any) -> Iterator[tuple[int, Any]]:
@@ -493,18 +490,25 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
         terminate()
         return
     processes = list((getattr(pool, "_processes", None) or {}).values())
-    manager = getattr(pool, "_executor_manager_thread", None)
     for process in processes:
         with contextlib.suppress(Exception):
             process.terminate()
-    pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         with contextlib.suppress(Exception):
             process.join(5.0)
-    # The pool's manager thread notices the dead workers and closes its wake-up pipe; if the interpreter exits
-    # meanwhile, concurrent.futures' exit hook writes to that pipe as it closes and prints a traceback under
-    # the command's one line (an unlocked check-then-write in concurrent.futures).  Waiting for the thread
-    # closes the race.
+    _shutdown(pool, wait=False)
+
+
+def _shutdown(pool: ProcessPoolExecutor, wait: bool) -> None:
+    """Shut the pool down (pending items cancelled; ``wait``: let running ones finish) and wait for its manager
+    thread, whatever ``wait`` says.
+
+    Why the thread: after workers died (stopped, or lost) it notices and closes its wake-up pipe; if the
+    interpreter exits meanwhile, concurrent.futures' exit hook writes to that pipe as it closes and prints a
+    traceback under the command's one line (an unlocked check-then-write in concurrent.futures; seen in CI after
+    SIGTERM).  ``shutdown(wait=False)`` forgets the thread, so it is taken first."""
+    manager = getattr(pool, "_executor_manager_thread", None)
+    pool.shutdown(wait=wait, cancel_futures=True)
     if manager is not None:
         with contextlib.suppress(Exception):
             manager.join(10.0)

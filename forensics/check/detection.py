@@ -71,7 +71,8 @@ def epoch_offsets(meas: Measurements, gids: list[int], noise: float,
     """
     wts = np.array([meas.groups[g].n for g in gids], float)[:, None, None]
     lev = meas.scene_all[gids]
-    res = meas.mean_all[gids] - (lev if reference is None else reference[gids])
+    output = meas.mean_all[gids]
+    res = output - (lev if reference is None else reference[gids])
     wsum = wts.sum(0)
     lbar = (wts * lev).sum(0) / wsum
     rbar = (wts * res).sum(0) / wsum
@@ -91,7 +92,6 @@ def epoch_offsets(meas: Measurements, gids: list[int], noise: float,
     # dark-subtracted (the 2017 STL-1001E series) reads 1,158 ADU in biases, 63,867 in a 300 s dark and the
     # flats' level in the flats — a negative slope, but nothing like a constant; a stuck pixel's output range
     # stays below half the light's, as its slope does
-    output = meas.mean_all[gids]
     flat = (np.where(sxx > 0, slope, 0.0) < -0.5) & (output.max(0) - output.min(0) < 0.5 * spread)
     constant = ((meas.lo[gids].min(0) == meas.hi[gids].max(0)) | flat) & varies
     inside = dhat[meas.interior]

@@ -10,7 +10,6 @@ for every fit), so every model's result is the same on every backend.
 from __future__ import annotations
 
 import dataclasses
-
 import math
 import pickle
 import warnings
@@ -116,16 +115,18 @@ def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
     err_var, gof_var, variance_rows = variance_gof(ev, fitted)
     err_growth, gof_growth, growth_rows = growth_gof(ev, fitted)
     gof_spatial, ripley, spatial_rows = spatial_gof(ev, fitted)
-    error_rows = [CheckRow(f"pixel: held-out error² ({name}, {n} pixel means)", value**2, 1.0,
-                           (value**2 - 1) / math.sqrt(2 / max(n, 1)))
-                  for name, value in reversed(classes.items()) if value is not None
-                  for n in [int(np.sum(ev.usable & (px.classes == CLASSES.index(name))))]]
+    error_rows = []
+    for name, value in reversed(classes.items()):  # the table lists the classes last to first
+        if value is not None:
+            n = int(np.sum(ev.usable & (px.classes == CLASSES.index(name))))
+            error_rows.append(CheckRow(f"pixel: held-out error² ({name}, {n} pixel means)", value**2, 1.0,
+                                       (value**2 - 1) / math.sqrt(2 / max(n, 1))))
     checks = [*error_rows, *pixel_rows, *covariate_rows, *variance_rows, *growth_rows, *spatial_rows]
     candidates, notes = diagnose(ev, fitted, candidate_names(fitted.effects))
-    shares = [] if fitted.not_converged else dark_pattern_shares(ev, fitted)
+    unsettled = fitted.not_converged
+    shares = [] if unsettled else dark_pattern_shares(ev, fitted)
     warn = (list(ev.meas.notes) + ev.notes + notes + design_warnings(ev, px, candidates, fitted.effects)
             + single_frame_warnings(ev, fitted) + reduced_frame_warnings(shares))
-    unsettled = fitted.not_converged
     if unsettled:
         # not a result: no error or gof is reported for a fit that did not settle
         warn.insert(0, f"the fit did not converge ({', '.join(unsettled)} still moving): no error or goodness of "
