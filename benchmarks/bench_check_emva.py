@@ -24,6 +24,7 @@ Usage::
     .venv/bin/python benchmarks/bench_check_emva.py --parts standard --seeds 1 2 3 --work /tmp/bce
     .venv/bin/python benchmarks/bench_check_emva.py --parts series hidden --work /tmp/bce
     .venv/bin/python benchmarks/bench_check_emva.py --parts large --sizes 1MP 12MP --timeout 900 --work /tmp/bce
+    .venv/bin/python benchmarks/bench_check_emva.py --parts large --tiles 256 --work /tmp/bce   # tile by tile
 
 The figures are written as Markdown to stdout (and ``--json``); the machine is shared, so read the load average
 beside each figure: wall times measured under load are upper bounds, CPU seconds are closer to the idle wall time.
@@ -163,6 +164,13 @@ def fmt(v, spec: str = ".4g") -> str:
 def path_summary(result: dict | None) -> str:
     if not result:
         return "no result"
+    if "tiles" in result:  # --tiles: the selection on the central tile, then the whole frame's tiles
+        sel = result.get("selection") or {}
+        steps = " → ".join(p["step"] for p in sel.get("path", []))
+        same = [f"{p['effect']}.{p['name']}" for p in result["params"] if p.get("p_same") is not None
+                and p["p_same"] < 0.001]
+        return (f"central tile: {steps}; {len(result['tiles'])} tiles, error.pixel {fmt(result['error']['pixel'])}, "
+                f"differ between tiles: {', '.join(same) or 'none'}")
     steps = " → ".join(p["step"] for p in result.get("path", []))
     return f"{steps}; stopped: {result.get('stopped', '?')}"
 
@@ -207,7 +215,7 @@ def emva_images(folder: Path, iso: float, temperature: float) -> dict:
 
 
 def simulator_series(work: Path, name: str, design, seed: int, emva_python: str | None, timeout: float,
-                     rows: list[dict], part: str) -> None:
+                     rows: list[dict], part: str, extra: list[str] = ()) -> None:
     from forensics.fixtures.emva import make_emva_series
 
     folder = work / name
@@ -221,7 +229,7 @@ def simulator_series(work: Path, name: str, design, seed: int, emva_python: str 
         spec = work / f"{name}-emva-images.json"
         spec.write_text(json.dumps(emva_images(folder, iso, temp)))
         theirs = emva_analysis(emva_python, images=spec, timeout=timeout)
-    ours = forensics_auto(folder, timeout)
+    ours = forensics_auto(folder, timeout, extra)
     n = sum(1 for _ in open(folder / "manifest.csv")) - 1
     rows.append({"part": part, "name": name, "frames": n, "shape": list(design.shape),
                  "truth_K": design.gains[iso], "emva": theirs, "forensics": ours,
@@ -237,7 +245,10 @@ def series(work: Path, emva_python: str, timeout: float, rows: list[dict]) -> No
     simulator_series(work, "series-216", design, 5, emva_python, timeout, rows, "series")
 
 
-def large(work: Path, sizes: list[str], emva_python: str | None, timeout: float, rows: list[dict]) -> None:
+def large(work: Path, sizes: list[str], emva_python: str | None, timeout: float, rows: list[dict],
+          tiles: int | None = None) -> None:
+    """The large frames; with ``tiles``, ``--auto --tiles TILES`` (selection on the central tile, then every
+    tile checked and combined: forensics.check.tiles)."""
     from forensics.fixtures.emva import EmvaDesign
 
     for size in sizes:
@@ -246,7 +257,9 @@ def large(work: Path, sizes: list[str], emva_python: str | None, timeout: float,
         if size == "24MP":  # 20 frames: one temperature less, one flat less, as the issue's 24 MP row
             design = replace(design, exposures_s=(0.01, 0.02, 0.04, 0.08, 0.16), temperatures_c=(20.0,),
                              flat_electrons=(800.0,))
-        simulator_series(work, f"large-{size}", design, 11, emva_python, timeout, rows, "large")
+        extra = [] if tiles is None else ["--tiles", str(tiles)]
+        simulator_series(work, f"large-{size}", design, 11, emva_python, timeout, rows,
+                         "large" if tiles is None else f"large, --tiles {tiles}", extra)
 
 
 def hidden(work: Path, timeout: float, rows: list[dict]) -> None:
@@ -293,6 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1], help="seeds of the standard series")
     parser.add_argument("--sizes", nargs="+", default=["1MP", "12MP"], choices=list(LARGE))
     parser.add_argument("--emva-python", default="/work/venv-emva/bin/python")
+    parser.add_argument("--tiles", type=int, default=None, metavar="SIZE",
+                        help="large part: check the frames in tiles of SIZE × SIZE (model check --tiles)")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds before a child is stopped")
     parser.add_argument("--json", help="also write every run's figures to this file")
     args = parser.parse_args(argv)
@@ -309,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
     if "hidden" in args.parts:
         hidden(work, args.timeout, rows)
     if "large" in args.parts:
-        large(work, args.sizes, emva, args.timeout, rows)
+        large(work, args.sizes, emva, args.timeout, rows, args.tiles)
     report(rows)
     print(f"\nload average at the end: {os.getloadavg()[0]:.2f}")
     if args.json:

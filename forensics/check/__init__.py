@@ -26,6 +26,8 @@ The stages, one module each, data flowing one way:
 ``result``        the result dataclasses (``to_dict()`` for ``--json``); ``darkfigures`` a dark series' fitted
                   law in ADU, ADU/s and e⁻/ADU with intervals (:func:`dark_figures`)
 ``pipeline``      :func:`check`, :func:`run_check`, :func:`base_model`, :func:`candidate_names`
+``tiles``         the whole frame in tiles of bounded memory, combined by their information
+                  (:func:`check_tiles` → :class:`TiledCheck`)
 ``select``        forward selection of several effects: :func:`check_auto`, :func:`forward_select` →
                   :class:`SelectionResult` (the path base → +A → +B …)
 
@@ -54,6 +56,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "scene": ["KERNEL", "KERNEL_VAR", "loo_quadratic_kernel", "scene_estimate"],
         "select": ["Attempt", "SelectionResult", "Step", "check_auto", "forward_select"],
         "structure": ["residual_structure"],
+        "tiles": ["TiledCheck", "TiledParam", "check_tiles", "combine", "tile_grid"],
         "signatures": ["Signature"],
         "singles": ["SingleFrames", "single_frames"],
     },

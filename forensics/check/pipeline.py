@@ -257,7 +257,8 @@ FIT_BYTES_PER_PIXEL_CONDITION = 2200
 
 def require_fit_memory(meas: Measurements) -> None:
     """Refuse, before the fit, a check whose memory estimate (:data:`FIT_BYTES_PER_PIXEL_CONDITION` per pixel
-    and fitted condition) exceeds :func:`~forensics._shared.limits.memory_limit`, naming ``--region``: without
+    and fitted condition) exceeds :func:`~forensics._shared.limits.memory_limit`, naming ``--tiles`` and
+    ``--region``: without
     it a whole 1 MP dark series (43 GB) ran for many minutes and then died out of memory.
 
     Raises
@@ -270,8 +271,9 @@ def require_fit_memory(meas: Measurements) -> None:
     h, w = meas.shape
     n = max(len(meas.fitted), 1)
     require_memory(FIT_BYTES_PER_PIXEL_CONDITION * h * w * n,
-                   f"the model check of {w}×{h} pixels × {n} fitted conditions (--region checks a part of the "
-                   f"frames, e.g. --region {min(h, w, 512)})")
+                   f"the model check of {w}×{h} pixels × {n} fitted conditions (--tiles 256 checks the whole "
+                   f"frame tile by tile in the memory of one tile per worker; --region checks a part of it, e.g. "
+                   f"--region {min(h, w, 512)})")
 
 
 def check(data: Dataset | str | Path | Measurements, add: Sequence[str | Effect] = (), rng: RngLike = 0,

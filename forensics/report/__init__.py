@@ -14,7 +14,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
         "ageing": ["ageing_demo_report", "counts_figure", "crops_figure", "onset_map_figure"],
-        "check": ["check_report", "selection_report"],
+        "check": ["check_report", "selection_report", "tiles_report"],
         "cluster": ["add_clusters", "cluster_report"],
         "darkseries": ["dark_report"],
         "defects": ["dating_report", "detection_report", "growth_report"],

@@ -12,6 +12,7 @@ from forensics.check.classes import CHANNELS, CLASSES
 from forensics.check.diagnosis import FLAG_DBIC
 from forensics.check.result import CheckResult
 from forensics.check.select import SelectionResult
+from forensics.check.tiles import TiledCheck
 from forensics.report.html import Report, new_figure
 from forensics.sensor.catalogue import PARTIAL, STUCK
 
@@ -352,3 +353,83 @@ def _checks(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult]
 
 def _num(v: Any) -> Any:
     return "—" if v is None else v
+
+
+def tiles_report(tiled: TiledCheck, selection: SelectionResult | None = None,
+                 title: str = "Model check in tiles") -> Report:
+    """An HTML report of a whole frame checked in tiles (:func:`~forensics.check.tiles.check_tiles`): with
+    ``selection`` (``--auto`` on the central tile) its path first, then the combined parameters with their
+    heterogeneity tests, a map of every parameter's value per tile in standard errors from the combined value,
+    and a map of the held-out error per tile."""
+    rep = Report(title)
+    if selection is not None:
+        rep.heading("Forward selection on the central tile")
+        rep.text("Path: " + " → ".join(s.label for s in selection.steps) + f". Stopped: {selection.stopped}.")
+        _ladder(rep, selection)
+    h, w = tiled.shape
+    rep.heading("Whole frame in tiles")
+    rep.text(f"{w}×{h} pixels in {len(tiled.tiles)} tiles of about {tiled.size}×{tiled.size}, each checked on its "
+             f"own; model {' + '.join(tiled.effects)}.  Global parameters combined by their information; 'p same' "
+             "tests whether every tile has the same value (Cochran's Q), 'spread' is the tiles' standard deviation "
+             "beyond their own errors.")
+    rep.table(["parameter", "value", "SE", "unit", "tiles", "spread", "p same"],
+              [[p.estimate.label, _num(p.estimate.value), _num(p.estimate.se), p.estimate.unit, p.tiles,
+                _num(p.spread), _num(p.p_same)] for p in tiled.params])
+    rep.table(["channel", "error (pooled)", "gof p (Fisher)"],
+              [[k, _num(tiled.error.get(k)), _num(tiled.gof.get(k))] for k in tiled.gof])
+    rep.table(["candidate", "ΔBIC (summed)", "p (Holm)", "flagged", "flagged alone in tiles"],
+              [[c.effect, _num(c.delta_bic), _num(c.p), "yes" if c.flagged else "", f"{c.flagged_tiles} of "
+                f"{c.tested_tiles}"] for c in tiled.candidates])
+    _tile_maps(rep, tiled)
+    for warning in tiled.warnings:
+        rep.text(warning, note=True)
+    return rep
+
+
+def _tile_grid_values(tiled: TiledCheck, value) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row edges, column edges, values per tile) for ``pcolormesh``; NaN where ``value(tile)`` is None."""
+    rows = sorted({t.tile.core[0] for t in tiled.tiles})
+    cols = sorted({t.tile.core[1] for t in tiled.tiles})
+    grid = np.full((len(rows), len(cols)), np.nan)
+    for t in tiled.tiles:
+        v = value(t)
+        if v is not None:
+            grid[rows.index(t.tile.core[0]), cols.index(t.tile.core[1])] = v
+    return np.array([*rows, tiled.shape[0]]), np.array([*cols, tiled.shape[1]]), grid
+
+
+def _tile_maps(rep: Report, tiled: TiledCheck) -> None:
+    """Per tile: each combined parameter's (tile − combined)/SE of the tile, and the held-out pixel error."""
+    params = [p for p in tiled.params if p.tiles >= 2]
+    panels = len(params) + 1
+    ncols = min(panels, 3)
+    nrows = math.ceil(panels / ncols)
+    fig, axes = new_figure(4.2 * ncols, 3.6 * nrows, ncols=ncols, nrows=nrows)
+    axes = np.asarray(axes).ravel()
+    for ax, p in zip(axes, params):
+        label, centre = p.estimate.label, p.estimate.value
+
+        def z(t, label=label, centre=centre):
+            own = next((q for q in t.params if q.label == label and q.se and q.converged and not q.bound), None)
+            return None if own is None or t.not_converged else (own.value - centre) / own.se
+        ye, xe, grid = _tile_grid_values(tiled, z)
+        im = ax.pcolormesh(xe, ye, grid, cmap="RdBu_r", vmin=-4, vmax=4)
+        ax.set_ylim(ye[-1], ye[0])
+        same = "—" if p.p_same is None else f"{p.p_same:.2g}"
+        ax.set_title(f"{label}\n(tile − combined) / SE; p same {same}", fontsize=8)
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    ax = axes[len(params)]
+
+    def error(t):
+        vals = [v for v in t.classes.values() if v is not None]
+        return None if t.not_converged or not vals else max(vals)
+    ye, xe, grid = _tile_grid_values(tiled, error)
+    im = ax.pcolormesh(xe, ye, grid, cmap="magma", vmin=0, vmax=max(3.0, float(np.nanmax(grid)) if np.isfinite(grid).any() else 3.0))
+    ax.set_ylim(ye[-1], ye[0])
+    ax.set_title("held-out pixel error per tile (1 = noise floor)", fontsize=8)
+    fig.colorbar(im, ax=ax, shrink=0.8)
+    for extra in axes[panels:]:
+        extra.set_visible(False)
+    rep.figure(fig, "tile_maps", "Each tile's own estimate of every global parameter, in its own standard errors "
+               "from the combined value (blue below, red above; a smooth gradient or a hot corner is a spatial "
+               "effect the model lacks), and each tile's held-out pixel error (the worst class).")

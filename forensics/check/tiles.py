@@ -1,0 +1,440 @@
+"""The model check of whole frames, tile by tile: memory bounded by a tile, time linear in the pixels.
+
+A whole-frame fit holds (conditions × frame) arrays — ≈ 2.2 KB per pixel and fitted condition, 43 GB for a 1 MP
+dark series.  Here the frame is cut into tiles of about ``size × size`` pixels; each tile is read (its region of
+every frame, with a halo of its neighbours' pixels) and checked on its own — the whole check, memory of one tile
+per worker — and the tiles' results are combined:
+
+* **Global parameters** (black level, conversion gain, dark rate, read noise …): each tile's estimate with its
+  covariance is a quadratic approximation of that tile's log-likelihood; the tiles' pixels are disjoint
+  (each pixel is scored in one tile only: the halo is the tiles' unscored border), so the whole frame's
+  log-likelihood is their sum, and its maximum is the information-weighted combination
+  ``θ̂ = (Σ Pₜ)⁻¹ Σ Pₜ θₜ`` with ``Pₜ = Cov(θₜ)⁻¹`` and covariance ``(Σ Pₜ)⁻¹`` — the normal equations summed
+  over the tiles (the "aggregated estimating equation" estimator of Lin & Xi, Statistics and Its Interface 4,
+  2011; asymptotically as efficient as the joint fit when every tile holds many pixels).
+* **Are the parameters the same everywhere?**  ``Q = Σ (θₜ − θ̂)ᵀ Pₜ (θₜ − θ̂)`` is χ² with
+  ``Σ kₜ − k`` degrees of freedom if they are (Cochran's heterogeneity test, per parameter and jointly).  A
+  dark rate or a gain that changes across the sensor — amplifier glow in a corner, a gain gradient — fails it:
+  a spatial effect the model lacks, which one small region cannot show.
+* **Errors** pool the tiles' squared held-out errors by their numbers of held-out means; **goodness of fit**
+  combines the tiles' independent p-values (Fisher's method); **candidates** sum their score (LM) statistics
+  over the tiles, each χ² with its degrees of freedom under the model (Holm-adjusted across candidates, flagged
+  by the same rule as one check), and say in how many tiles each was flagged on its own.
+
+What tiles give up: the pixel-local patterns of a pixel in a halo are fitted in each tile that reads it (only
+its own tile scores it); random-effect patterns are centred per tile (their common mode is the tile's global
+parameter, which the combination pools); defect arrival and placement are tested per tile.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy import stats
+
+from forensics._shared.progress import Progress, no_progress
+from forensics._shared.rng import RngLike
+from forensics.check.diagnosis import FLAG_DBIC, FLAG_P
+from forensics.check.measurements import Region
+from forensics.check.result import ParamEstimate
+from forensics.check.structure import holm
+from forensics.io.dataset import Dataset, open_dataset
+
+if TYPE_CHECKING:
+    from forensics._shared.parallel import Executor
+    from forensics.check.result import CheckResult
+
+#: Pixels of the neighbours read around each tile: the check's unscored border
+#: (:func:`~forensics.check.measurements.load_measurements`' default, half the scene window), so that every
+#: pixel of the frame's interior is scored in exactly one tile and its scene estimate sees all its neighbours.
+HALO = 3
+
+
+@dataclass(frozen=True)
+class Tile:
+    """One tile: the part it scores (``core``) and the part it reads (``region``: the core and its halo,
+    clipped at the frame's edges); both ``(top, left, height, width)``."""
+
+    core: Region
+    region: Region
+
+
+def tile_grid(shape: Sequence[int], size: int, halo: int = HALO) -> list[Tile]:
+    """Tiles of about ``size × size`` pixels covering a frame of ``shape`` (rows, columns), row by row.
+
+    The cores split each side into ``ceil(side / size)`` near-equal parts (no sliver at the end); each is read
+    with ``halo`` pixels of its neighbours around it.
+
+    Examples
+    --------
+    >>> [t.core for t in tile_grid((10, 7), 5)]
+    [(0, 0, 5, 7), (5, 0, 5, 7)]
+    >>> tile_grid((10, 7), 5)[1].region
+    (2, 0, 8, 7)
+    """
+    h, w = int(shape[0]), int(shape[1])
+    if size < 8:
+        raise ValueError(f"tile size {size}: at least 8 pixels (the scene estimate needs a 7 × 7 window)")
+    rows = np.linspace(0, h, math.ceil(h / size) + 1).round().astype(int)
+    cols = np.linspace(0, w, math.ceil(w / size) + 1).round().astype(int)
+    out = []
+    for top, bottom in zip(rows[:-1], rows[1:]):
+        for left, right in zip(cols[:-1], cols[1:]):
+            r0, r1 = max(top - halo, 0), min(bottom + halo, h)
+            c0, c1 = max(left - halo, 0), min(right + halo, w)
+            out.append(Tile((int(top), int(left), int(bottom - top), int(right - left)),
+                            (int(r0), int(c0), int(r1 - r0), int(c1 - c0))))
+    return out
+
+
+@dataclass(frozen=True)
+class TileCandidate:
+    """One candidate's evidence in one tile (from :class:`~forensics.check.result.Candidate`)."""
+
+    effect: str
+    lm: float
+    df: int
+    delta_bic: float
+    flagged: bool
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """What the combination needs of one tile's check (small: it travels back from a worker)."""
+
+    tile: Tile
+    effects: list[str]
+    params: list[ParamEstimate]
+    classes: dict[str, float | None]  #: held-out error per pixel class
+    held_out: dict[str, int]  #: held-out means per pixel class
+    variance_error: float | None
+    gof: dict[str, float | None]
+    candidates: list[TileCandidate]
+    not_converged: list[str]
+    warnings: list[str]
+
+    @classmethod
+    def of(cls, tile: Tile, result: "CheckResult") -> "TileResult":
+        """The parts of a tile's :class:`~forensics.check.result.CheckResult` the combination uses."""
+        unsettled = [p.label for p in result.params if not p.converged]
+        cands = [TileCandidate(c.effect, float(c.lm), int(c.df), float(c.delta_bic), bool(c.flagged))
+                 for c in result.candidates if c.lm is not None and np.isfinite(c.lm) and c.df > 0]
+        return cls(tile, list(result.effects), list(result.params), dict(result.error["classes"]),
+                   dict(result.data["held_out_means"]), result.error["variance"], dict(result.gof), cands,
+                   unsettled, list(result.warnings))
+
+
+@dataclass(frozen=True)
+class TiledParam:
+    """A global parameter combined over the tiles, and whether the tiles agree on it."""
+
+    estimate: ParamEstimate  #: the combined value, its standard error and covariances
+    tiles: int  #: tiles whose estimate entered (identifiable, settled, not on a bound)
+    q: float | None  #: Cochran's Q of this parameter alone (Σ (θₜ − θ̂)² / seₜ²)
+    df: int
+    p_same: float | None  #: P(Q this large | the parameter is the same in every tile)
+    spread: float | None  #: the tiles' values' standard deviation beyond their own errors (DerSimonian–Laird τ)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.estimate.to_dict(), "tiles": self.tiles, "q": self.q, "df": self.df, "p_same": self.p_same,
+                "spread": self.spread}
+
+
+@dataclass(frozen=True)
+class CombinedCandidate:
+    """A candidate's evidence summed over the tiles."""
+
+    effect: str
+    lm: float
+    df: int
+    delta_bic: float
+    p_raw: float
+    p: float  #: Holm-adjusted over the candidates
+    flagged: bool
+    flagged_tiles: int
+    tested_tiles: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class TiledCheck:
+    """The whole frame's check from its tiles (:func:`check_tiles`).  ``to_dict()`` gives the JSON."""
+
+    shape: tuple[int, int]
+    size: int
+    effects: list[str]
+    tiles: list[TileResult]
+    params: list[TiledParam]
+    joint_q: float | None
+    joint_df: int
+    joint_p_same: float | None
+    error: dict[str, Any]
+    gof: dict[str, float | None]
+    candidates: list[CombinedCandidate]
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def flagged(self) -> list[str]:
+        return [c.effect for c in self.candidates if c.flagged]
+
+    @property
+    def failed(self) -> list[TileResult]:
+        """Tiles whose fit did not settle (left out of every combination)."""
+        return [t for t in self.tiles if t.not_converged]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"shape": list(self.shape), "tile_size": self.size, "effects": self.effects,
+                "params": [p.to_dict() for p in self.params],
+                "heterogeneity": {"q": self.joint_q, "df": self.joint_df, "p_same": self.joint_p_same},
+                "error": self.error, "gof": self.gof, "candidates": [c.to_dict() for c in self.candidates],
+                "tiles": [{"core": list(t.tile.core), "region": list(t.tile.region),
+                           "error": t.classes, "held_out": t.held_out, "gof": t.gof,
+                           "params": {p.label: {"value": p.value, "se": p.se} for p in t.params},
+                           "flagged": [c.effect for c in t.candidates if c.flagged],
+                           "not_converged": t.not_converged} for t in self.tiles],
+                "warnings": self.warnings}
+
+
+# ------------------------------------------------------------------------------------------------ combination
+def _tile_covariance(params: Sequence[ParamEstimate]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(labels, values, covariance) of a tile's usable estimates: identifiable, settled, with a standard
+    error, off their bounds (at a bound the likelihood is not quadratic about the value)."""
+    use = [p for p in params if p.identifiable and p.converged and p.se is not None and p.se > 0 and not p.bound
+           and np.isfinite(p.value)]
+    labels = [p.label for p in use]
+    cov = np.diag([float(p.se) ** 2 for p in use])
+    for i, p in enumerate(use):
+        for j, q in enumerate(use):
+            if i != j and q.label in p.cov:
+                cov[i, j] = p.cov[q.label]
+    cov = 0.5 * (cov + cov.T)
+    return labels, np.array([p.value for p in use], float), cov
+
+
+def _precision(cov: np.ndarray) -> np.ndarray:
+    """The inverse of a covariance, on its unit-diagonal scaling (the parameters' units differ by orders of
+    magnitude); a pseudo-inverse where the tile's estimates are (nearly) collinear."""
+    d = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(d, d)
+    return np.linalg.pinv(corr, rcond=1e-10, hermitian=True) / np.outer(d, d)
+
+
+def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float | None, int, float | None]:
+    """The global parameters combined over ``tiles`` by their information (module docstring), each with its
+    heterogeneity test, and the joint heterogeneity test (Q, df, p).
+
+    Examples
+    --------
+    Two tiles that measured one parameter, 10 ± 1 and 12 ± 1: the combination is 11 ± 0.71, and Q = 2 on 1 df.
+
+    >>> from forensics.check.result import ParamEstimate
+    >>> t = [TileResult(Tile((0, 0, 8, 8), (0, 0, 8, 8)), [], [ParamEstimate("offset", "level", v, 1.0)],
+    ...                 {}, {}, None, {}, [], [], []) for v in (10.0, 12.0)]
+    >>> p, q, df, _ = combine_params(t)
+    >>> round(p[0].estimate.value, 3), round(p[0].estimate.se, 3), round(q, 3), df
+    (11.0, 0.707, 2.0, 1)
+    """
+    order: list[str] = []
+    meta: dict[str, ParamEstimate] = {}
+    parts = []
+    for t in tiles:
+        if t.not_converged:
+            continue
+        labels, values, cov = _tile_covariance(t.params)
+        if not labels:
+            continue
+        parts.append((labels, values, cov, _precision(cov)))
+        for p in t.params:
+            if p.label in labels and p.label not in meta:
+                meta[p.label] = p
+                order.append(p.label)
+    k = len(order)
+    if k == 0:
+        return [], None, 0, None
+    index = {label: i for i, label in enumerate(order)}
+    info = np.zeros((k, k))
+    rhs = np.zeros(k)
+    for labels, values, _, prec in parts:
+        idx = [index[label] for label in labels]
+        info[np.ix_(idx, idx)] += prec
+        rhs[idx] += prec @ values
+    cov = _precision(info)  # the inverse of the summed information (same scaled pseudo-inverse)
+    theta = cov @ rhs
+    q_joint, n_joint = 0.0, 0
+    per_q = np.zeros(k)
+    per_n = np.zeros(k, int)
+    per_vals: list[list[tuple[float, float]]] = [[] for _ in range(k)]
+    for labels, values, tcov, prec in parts:
+        idx = [index[label] for label in labels]
+        d = values - theta[idx]
+        q_joint += float(d @ prec @ d)
+        n_joint += len(idx)
+        for j, i in enumerate(idx):
+            se2 = float(tcov[j, j])
+            per_q[i] += d[j] ** 2 / se2
+            per_n[i] += 1
+            per_vals[i].append((float(values[j]), se2))
+    joint_df = n_joint - k
+    out = []
+    for i, label in enumerate(order):
+        p0 = meta[label]
+        se = float(np.sqrt(max(cov[i, i], 0.0)))
+        covs = {order[j]: float(cov[i, j]) for j in range(k) if j != i}
+        estimate = ParamEstimate(p0.effect, p0.name, float(theta[i]), se, p0.unit, cov=covs)
+        df = int(per_n[i] - 1)
+        q = float(per_q[i]) if df >= 1 else None
+        out.append(TiledParam(estimate, int(per_n[i]), q, df, None if q is None else float(stats.chi2.sf(q, df)),
+                              _between_tile_spread(per_vals[i])))
+    p_joint = float(stats.chi2.sf(q_joint, joint_df)) if joint_df >= 1 else None
+    return out, (q_joint if joint_df >= 1 else None), max(joint_df, 0), p_joint
+
+
+def _between_tile_spread(values: list[tuple[float, float]]) -> float | None:
+    """The standard deviation of the tiles' true values beyond their own errors: DerSimonian & Laird's
+    moment estimate τ (Controlled Clinical Trials 7, 1986), 0 when the tiles agree within their errors."""
+    if len(values) < 2:
+        return None
+    v = np.array([a for a, _ in values])
+    w = 1.0 / np.array([b for _, b in values])
+    mean = float(np.sum(w * v) / np.sum(w))
+    q = float(np.sum(w * (v - mean) ** 2))
+    c = float(np.sum(w) - np.sum(w * w) / np.sum(w))
+    return float(np.sqrt(max((q - (len(v) - 1)) / c, 0.0))) if c > 0 else None
+
+
+def combine_errors(tiles: Sequence[TileResult]) -> dict[str, Any]:
+    """The held-out error per pixel class pooled over the tiles (root of the mean squared error, each tile
+    weighted by its held-out means), the pixel error as one check's (the worst class), and the variance
+    channel's error pooled as a root mean square over the tiles."""
+    names: list[str] = []
+    for t in tiles:
+        names += [n for n in t.classes if n not in names]
+    classes: dict[str, float | None] = {}
+    for name in names:
+        pairs = [(t.classes[name], t.held_out.get(name, 0)) for t in tiles
+                 if not t.not_converged and t.classes.get(name) is not None and t.held_out.get(name, 0) > 0]
+        n = sum(m for _, m in pairs)
+        classes[name] = float(np.sqrt(sum(e * e * m for e, m in pairs) / n)) if n else None
+    values = [v for v in classes.values() if v is not None]
+    var = [t.variance_error for t in tiles if not t.not_converged and t.variance_error is not None]
+    return {"pixel": max(values) if values else None, "classes": classes,
+            "variance": float(np.sqrt(np.mean(np.square(var)))) if var else None}
+
+
+#: p-values below this are taken at it in Fisher's sum (a tile's "< 1e-300" is 0.0 in its result)
+P_FLOOR = 1e-300
+
+
+def combine_gof(tiles: Sequence[TileResult]) -> dict[str, float | None]:
+    """Each channel's goodness-of-fit p-value over the tiles by Fisher's method (−2 Σ ln p ~ χ²₂ₜ for
+    independent tests under the model)."""
+    keys: list[str] = []
+    for t in tiles:
+        keys += [k for k in t.gof if k not in keys]
+    out: dict[str, float | None] = {}
+    for key in keys:
+        ps = [max(float(t.gof[key]), P_FLOOR) for t in tiles if not t.not_converged and t.gof.get(key) is not None]
+        out[key] = float(stats.chi2.sf(-2.0 * float(np.sum(np.log(ps))), 2 * len(ps))) if ps else None
+    return out
+
+
+def combine_candidates(tiles: Sequence[TileResult]) -> list[CombinedCandidate]:
+    """Every candidate's score statistics summed over the tiles that tested it (each χ² with its df under the
+    model, the tiles independent), ΔBIC summed likewise, Holm-adjusted across candidates and flagged by the
+    rule of one check (ΔBIC > :data:`~forensics.check.diagnosis.FLAG_DBIC` and p < ``FLAG_P``); ranked by ΔBIC."""
+    sums: dict[str, list[float]] = {}
+    for t in tiles:
+        if t.not_converged:
+            continue
+        for c in t.candidates:
+            s = sums.setdefault(c.effect, [0.0, 0, 0.0, 0, 0])
+            s[0] += c.lm
+            s[1] += c.df
+            s[2] += c.delta_bic
+            s[3] += int(c.flagged)
+            s[4] += 1
+    names = list(sums)
+    p_raw = [float(stats.chi2.sf(sums[n][0], sums[n][1])) for n in names]
+    p_adj = holm(p_raw) if names else np.array([])
+    out = [CombinedCandidate(n, float(sums[n][0]), int(sums[n][1]), float(sums[n][2]), p_raw[i], float(p_adj[i]),
+                             bool(sums[n][2] > FLAG_DBIC and p_adj[i] < FLAG_P), int(sums[n][3]), int(sums[n][4]))
+           for i, n in enumerate(names)]
+    return sorted(out, key=lambda c: -c.delta_bic)
+
+
+def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> TiledCheck:
+    """The whole frame's :class:`TiledCheck` from its tiles' results."""
+    tiles = list(tiles)
+    params, q, df, p = combine_params(tiles)
+    warnings = []
+    failed = [t for t in tiles if t.not_converged]
+    if failed:
+        where = "; ".join(f"rows {t.tile.core[0]}–{t.tile.core[0] + t.tile.core[2] - 1}, columns "
+                          f"{t.tile.core[1]}–{t.tile.core[1] + t.tile.core[3] - 1}" for t in failed[:5])
+        warnings.append(f"{len(failed)} of {len(tiles)} tiles did not converge and are left out of every combined "
+                        f"figure ({where}{' …' if len(failed) > 5 else ''})")
+    for t in tiles[:1]:  # what every tile says about the data (the design, the fields missing) is said once
+        warnings += [w for w in t.warnings if not w.startswith("only a region of the")]
+    effects = tiles[0].effects if tiles else []
+    return TiledCheck((int(shape[0]), int(shape[1])), int(size), list(effects), tiles, params, q, df, p,
+                      combine_errors(tiles), combine_gof(tiles), combine_candidates(tiles), warnings)
+
+
+# ------------------------------------------------------------------------------------------------ running
+def check_tile(data: Dataset, item: tuple[Tile, list[Any], np.random.SeedSequence, int]) -> TileResult:
+    """One tile's check (a work item of :func:`check_tiles`: module-level, the dataset shared)."""
+    from forensics.check.pipeline import check
+
+    tile, add, seeds, n_sim = item
+    result = check(data, add=add, rng=np.random.default_rng(seeds), baseline=False, n_sim=n_sim, region=tile.region)
+    return TileResult.of(tile, result)
+
+
+def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int = 256, rng: RngLike = 0,
+                n_sim: int = 199, progress: Progress = no_progress,
+                executor: Executor | None = None) -> TiledCheck:
+    """Check the base model plus ``add`` on every tile of the frames and combine the tiles (module docstring).
+
+    Parameters
+    ----------
+    data
+        Dataset (or its folder).
+    add
+        Effects to add to the base model, as :func:`~forensics.check.pipeline.check` takes them.
+    size
+        The tiles' side in pixels (each is read with a 3-pixel halo); a tile's check needs ≈ 2.2 KB per pixel and
+        fitted condition (:data:`~forensics.check.pipeline.FIT_BYTES_PER_PIXEL_CONDITION`), per worker.
+    rng
+        Seed (or SeedSequence) of the tiles' Monte-Carlo streams: tile ``i`` draws from child ``i`` of
+        ``SeedSequence(rng).spawn``, whatever the order the tiles run in.
+    executor
+        The execution layer: one tile per work item, the dataset shipped once per worker.
+
+    Returns
+    -------
+    TiledCheck
+
+    Examples
+    --------
+    >>> from forensics.check.tiles import check_tiles                         # doctest: +SKIP
+    >>> whole = check_tiles("darks/", add=["shot_noise", "dark_current"], size=256)  # doctest: +SKIP
+    >>> [(p.estimate.label, p.estimate.value, p.p_same) for p in whole.params]      # doctest: +SKIP
+    """
+    from forensics._shared.parallel import resolve
+    from forensics.check.pipeline import resolve_effects
+
+    ds = data if isinstance(data, Dataset) else open_dataset(data)
+    shape = ds.shape()
+    resolve_effects(add)  # an unknown effect is named before any tile is read
+    tiles = tile_grid(shape, size)
+    root = rng if isinstance(rng, np.random.SeedSequence) else np.random.SeedSequence(
+        rng if isinstance(rng, (int, np.integer)) else np.random.default_rng(rng).integers(2**63))
+    items = [(t, list(add), s, n_sim) for t, s in zip(tiles, root.spawn(len(tiles)))]
+    results = list(resolve(executor).map(check_tile, items, shared=ds, progress=progress, desc="tiles"))
+    return combine(shape[:2], size, results)
