@@ -146,3 +146,13 @@ def test_tiles_from_the_command_line(flat_rate, tmp_path, capsys):
     assert main(["model", "check", str(folder), "--tiles", "48", "--region", "64", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "--tiles" in err and len(err.strip().splitlines()) == 1
+
+
+def test_auto_chooses_on_the_central_tile_and_checks_every_tile_with_that_model(flat_rate, capsys):
+    folder, tiled, _ = flat_rate
+    assert main(["model", "check", str(folder), "--tiles", "48", "--auto", "--json", "--workers", "1",
+                 "--quiet"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["selection"]["path"][0]["step"] == "base"
+    assert {"dark_current", "shot_noise"} <= set(out["effects"])  # what the series has, found on one tile
+    assert len(out["tiles"]) == 6 and not any(c["flagged"] for c in out["candidates"])
