@@ -22,6 +22,7 @@ from forensics.check.scoretests import score_growth, score_pixel, score_spatial,
 from forensics.check.signatures import Signature, SignatureContext
 from forensics.check.pixels import PixelData
 from forensics.sensor.model import Effect, make_effect
+from forensics.stats.multiple import holm_adjusted
 
 #: Flagging rule: predicted ΔBIC above this and Holm-adjusted p below ``FLAG_P``.
 FLAG_DBIC = 10.0
@@ -88,14 +89,11 @@ def _candidate(effect: Effect, name: str, tests: list[ChannelTest], n_obs: int, 
 
 def holm(results: list[Candidate]) -> None:
     """Holm-adjusted p-values and the flags, set on ``results`` (the candidates being assembled)."""
-    order = sorted(range(len(results)), key=lambda i: results[i].p_raw)
-    m = len(results)
-    running = 0.0
-    for rank, i in enumerate(order):
-        adj = min(1.0, (m - rank) * results[i].p_raw)
-        running = max(running, adj)
-        results[i].p = running
-        results[i].flagged = results[i].delta_bic > FLAG_DBIC and results[i].p < FLAG_P
+    if not results:
+        return
+    for c, adj in zip(results, holm_adjusted([c.p_raw for c in results])):
+        c.p = float(adj)
+        c.flagged = c.delta_bic > FLAG_DBIC and c.p < FLAG_P
 
 
 def _where(usable: np.ndarray, px: PixelData, sigs: list[Signature]) -> str:

@@ -50,6 +50,8 @@ from typing import Any
 import numpy as np
 from scipy import signal, stats
 
+from forensics.stats.multiple import holm_adjusted
+
 from forensics.check.classes import NORMAL, dark_groups
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
@@ -267,19 +269,6 @@ def trend_test(kind: str, covariate: str, x: np.ndarray, y: np.ndarray,
     return test, {"x": x, "y": y, "slope": slope, "intercept": intercept}
 
 
-def holm(p: Sequence[float]) -> np.ndarray:
-    """Holm's step-down adjusted p-values."""
-    p = np.asarray(p, float)
-    order = np.argsort(p)
-    m = p.size
-    adj = np.empty(m)
-    run = 0.0
-    for i, j in enumerate(order):
-        run = max(run, min(1.0, (m - i) * p[j]))
-        adj[j] = run
-    return adj
-
-
 def _labels(shape: tuple[int, int], used: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(used-pixel labels, whole-frame labels, bin centres) of the column, row and radial profiles."""
     h, w = shape
@@ -354,7 +343,7 @@ def residual_structure(ev: Evidence, fitted: FittedModel) -> StructureResult:
             if out is not None:
                 tests.append(out[0])
                 plots["trends"][f"{kind}: {cov}"] = out[1]
-    for t, q in zip(tests, holm([t.p for t in tests])):
+    for t, q in zip(tests, holm_adjusted([t.p for t in tests])):
         t.p_holm = float(q)
     best = min(tests, key=lambda t: (t.p_holm, t.p)) if tests else None
     named = best if best is not None and best.p_holm < NAME_P else None

@@ -36,13 +36,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import stats
 
+from forensics._shared.errors import UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.diagnosis import FLAG_DBIC, FLAG_P
 from forensics.check.measurements import Region
 from forensics.check.result import ParamEstimate
-from forensics.check.structure import holm
 from forensics.io.dataset import Dataset, open_dataset
+from forensics.stats.multiple import holm_adjusted
 
 if TYPE_CHECKING:
     from forensics._shared.parallel import Executor
@@ -52,6 +53,10 @@ if TYPE_CHECKING:
 #: (:func:`~forensics.check.measurements.load_measurements`' default, half the scene window), so that every
 #: pixel of the frame's interior is scored in exactly one tile and its scene estimate sees all its neighbours.
 HALO = 3
+
+
+#: The smallest tile side: the check of a region needs a 7 × 7 scene window inside its 3-pixel border.
+MIN_TILE = 16
 
 
 @dataclass(frozen=True)
@@ -71,14 +76,15 @@ def tile_grid(shape: Sequence[int], size: int, halo: int = HALO) -> list[Tile]:
 
     Examples
     --------
-    >>> [t.core for t in tile_grid((10, 7), 5)]
-    [(0, 0, 5, 7), (5, 0, 5, 7)]
-    >>> tile_grid((10, 7), 5)[1].region
-    (2, 0, 8, 7)
+    >>> [t.core for t in tile_grid((40, 20), 20)]
+    [(0, 0, 20, 20), (20, 0, 20, 20)]
+    >>> tile_grid((40, 20), 20)[1].region
+    (17, 0, 23, 20)
     """
     h, w = int(shape[0]), int(shape[1])
-    if size < 8:
-        raise ValueError(f"tile size {size}: at least 8 pixels (the scene estimate needs a 7 × 7 window)")
+    if size < MIN_TILE:
+        raise ValueError(f"tile size {size}: at least {MIN_TILE} pixels (a tile's check scores its interior, "
+                         "3 pixels in from its edges, with a 7 × 7 scene window)")
     rows = np.linspace(0, h, math.ceil(h / size) + 1).round().astype(int)
     cols = np.linspace(0, w, math.ceil(w / size) + 1).round().astype(int)
     out = []
@@ -361,7 +367,7 @@ def combine_candidates(tiles: Sequence[TileResult]) -> list[CombinedCandidate]:
             s[4] += 1
     names = list(sums)
     p_raw = [float(stats.chi2.sf(sums[n][0], sums[n][1])) for n in names]
-    p_adj = holm(p_raw) if names else np.array([])
+    p_adj = holm_adjusted(p_raw) if names else np.array([])
     out = [CombinedCandidate(n, float(sums[n][0]), int(sums[n][1]), float(sums[n][2]), p_raw[i], float(p_adj[i]),
                              bool(sums[n][2] > FLAG_DBIC and p_adj[i] < FLAG_P), int(sums[n][3]), int(sums[n][4]))
            for i, n in enumerate(names)]
@@ -429,6 +435,9 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
     from forensics._shared.parallel import resolve
     from forensics.check.pipeline import resolve_effects
 
+    if size < MIN_TILE:
+        raise UsageError(f"--tiles {size}: a tile needs at least {MIN_TILE} × {MIN_TILE} pixels (its 3-pixel border is "
+                         "not scored); tiles of 128–512 pixels keep the per-tile cost small")
     ds = data if isinstance(data, Dataset) else open_dataset(data)
     shape = ds.shape()
     resolve_effects(add)  # an unknown effect is named before any tile is read

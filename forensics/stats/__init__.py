@@ -1,7 +1,7 @@
 """Statistics shared by every domain: verification scores (ROC, EER, DET, bootstrap intervals; EERs whose
 comparisons share images resampled by class, ``clustered``), count
 statistics (exact Garwood / Clopper–Pearson / mid-p intervals, Poisson regression, trend tests, deviance),
-the moments of clipped and quantised readouts (near 0 and full scale), robust fits (``robust``), and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
+the moments of clipped and quantised readouts (near 0 and full scale), robust fits (``robust``), Holm's adjustment (``multiple``), and the spatial statistics of defect sites (Ripley's K and L, Clark–Evans, Thomas excess).  No figures:
 those are in :mod:`forensics.report.scores`.
 """
 import lazy_loader as _lazy
@@ -17,6 +17,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         ],
         "censored": ["clipped_normal_moments", "readout_moments"],
         "robust": ["origin_slope"],
+        "multiple": ["holm_adjusted"],
         "clustered": ["ClassBootstrap", "PairedScores", "binned_eer", "class_bootstrap_eer", "class_weights"],
         "scores": [
             "BootstrapResult", "DetCurve", "EerResult", "OperatingPoint", "Roc", "as_scores", "auc",

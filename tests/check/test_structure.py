@@ -15,7 +15,8 @@ from scipy import ndimage, stats
 from test_check import USER_EFFECT  # tests/check is on sys.path (pytest prepend mode)
 
 from forensics.check import KERNEL, check
-from forensics.check.structure import NAME_P, _labels, holm, profile_test, trend_test
+from forensics.check.structure import NAME_P, _labels, profile_test, trend_test
+from forensics.stats.multiple import holm_adjusted as holm
 
 
 def _residual(image: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ DESIGN = DarkSeriesDesign(shape=(96, 128), temperature_wander=0.0, offset_jitter
 ADD = ["shot_noise", "dark_current"]
 
 
-@pytest.mark.parametrize("shape,size", [((96, 128), 48), ((1000, 37), 256), ((17, 300), 64)])
+@pytest.mark.parametrize("shape,size", [((96, 128), 48), ((1000, 37), 256), ((17, 300), 64), ((40, 40), 16)])
 def test_tile_cores_partition_the_frame_and_regions_add_the_halo(shape, size):
     tiles = tile_grid(shape, size)
     cover = np.zeros(shape, int)
