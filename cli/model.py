@@ -196,6 +196,10 @@ def format_tiles(tiled: Any) -> str:
         e = p.estimate
         value = f"{_g(e.value, '.5g')} ± {_g(e.se, '.2g')} {e.unit}".strip()
         lines.append(f"  {e.label:<32} {value:>24}   {p.tiles:>5} {_g(p.spread, '9.2g')} {_p(p.p_same):>9}")
+    for p in tiled.patterns:
+        value = f"{_g(p.size, '.4g')} ± {_g(p.size_se, '.2g')}"
+        lines.append(f"  {p.effect + '.' + p.name + ' (size)':<32} {value:>24}   {p.tiles:>5} {_g(p.spread, '9.2g')} "
+                     f"{_p(p.p_same):>9}")
     if tiled.joint_p_same is not None:
         lines.append(f"  all parameters jointly: Q = {_g(tiled.joint_q)} on {tiled.joint_df} df, p {_p(tiled.joint_p_same)}")
     e = tiled.error

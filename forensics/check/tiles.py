@@ -41,7 +41,7 @@ from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.diagnosis import FLAG_DBIC, FLAG_P
 from forensics.check.measurements import Region
-from forensics.check.result import ParamEstimate
+from forensics.check.result import ParamEstimate, PatternEstimate
 from forensics.io.dataset import Dataset, open_dataset
 from forensics.stats.multiple import holm_adjusted
 
@@ -122,6 +122,8 @@ class TileResult:
     candidates: list[TileCandidate]
     not_converged: list[str]
     warnings: list[str]
+    #: the pixel-local random-effect patterns' sizes as the frames show them (those with a size)
+    patterns: list[PatternEstimate] = field(default_factory=list)
 
     @classmethod
     def of(cls, tile: Tile, result: "CheckResult") -> "TileResult":
@@ -131,7 +133,8 @@ class TileResult:
                  for c in result.candidates if c.lm is not None and np.isfinite(c.lm) and c.df > 0]
         return cls(tile, list(result.effects), list(result.params), dict(result.error["classes"]),
                    dict(result.data["held_out_means"]), result.error["variance"], dict(result.gof), cands,
-                   unsettled, list(result.warnings))
+                   unsettled, list(result.warnings),
+                   [p for p in result.patterns if p.size is not None and p.size_se is not None and p.size_se > 0])
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,26 @@ class TiledParam:
     def to_dict(self) -> dict[str, Any]:
         return {**self.estimate.to_dict(), "tiles": self.tiles, "q": self.q, "df": self.df, "p_same": self.p_same,
                 "spread": self.spread}
+
+
+@dataclass(frozen=True)
+class TiledPattern:
+    """A random-effect pattern's size (its standard deviation as the frames show it, e.g. PRNU's or the DSNU's)
+    combined over the tiles by inverse variance — every tile measures the same sensor-wide spread — with the
+    tiles' agreement on it."""
+
+    effect: str
+    name: str
+    size: float
+    size_se: float
+    tiles: int
+    q: float | None
+    df: int
+    p_same: float | None
+    spread: float | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
 
 
 @dataclass(frozen=True)
@@ -184,6 +207,7 @@ class TiledCheck:
     gof: dict[str, float | None]
     candidates: list[CombinedCandidate]
     warnings: list[str] = field(default_factory=list)
+    patterns: list[TiledPattern] = field(default_factory=list)
 
     @property
     def flagged(self) -> list[str]:
@@ -197,6 +221,7 @@ class TiledCheck:
     def to_dict(self) -> dict[str, Any]:
         return {"shape": list(self.shape), "tile_size": self.size, "effects": self.effects,
                 "params": [p.to_dict() for p in self.params],
+                "patterns": [p.to_dict() for p in self.patterns],
                 "heterogeneity": {"q": self.joint_q, "df": self.joint_df, "p_same": self.joint_p_same},
                 "error": self.error, "gof": self.gof, "candidates": [c.to_dict() for c in self.candidates],
                 "tiles": [{"core": list(t.tile.core), "region": list(t.tile.region),
@@ -239,7 +264,7 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
     --------
     Two tiles that measured one parameter, 10 ± 1 and 12 ± 1: the combination is 11 ± 0.71, and Q = 2 on 1 df.
 
-    >>> from forensics.check.result import ParamEstimate
+    >>> from forensics.check.result import ParamEstimate, PatternEstimate
     >>> t = [TileResult(Tile((0, 0, 8, 8), (0, 0, 8, 8)), [], [ParamEstimate("offset", "level", v, 1.0)],
     ...                 {}, {}, None, {}, [], [], []) for v in (10.0, 12.0)]
     >>> p, q, df, _ = combine_params(t)
@@ -312,6 +337,37 @@ def _between_tile_spread(values: list[tuple[float, float]]) -> float | None:
     q = float(np.sum(w * (v - mean) ** 2))
     c = float(np.sum(w) - np.sum(w * w) / np.sum(w))
     return float(np.sqrt(max((q - (len(v) - 1)) / c, 0.0))) if c > 0 else None
+
+
+def combine_pattern_sizes(tiles: Sequence[TileResult]) -> list[TiledPattern]:
+    """Every random-effect pattern's size combined over the tiles that measured it (inverse-variance weighted
+    mean; Cochran's Q and the DerSimonian–Laird spread as for a parameter).
+
+    Examples
+    --------
+    >>> from forensics.check.result import PatternEstimate
+    >>> t = [TileResult(Tile((0, 0, 8, 8), (0, 0, 8, 8)), [], [], {}, {}, None, {}, [], [], [],
+    ...                 [PatternEstimate("prnu", "k", 64, 0.01, 0.03, size=v, size_se=0.001)]) for v in (0.010, 0.012)]
+    >>> p = combine_pattern_sizes(t)[0]
+    >>> round(p.size, 4), round(p.size_se, 5), round(p.q, 1)
+    (0.011, 0.00071, 2.0)
+    """
+    found: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    for t in tiles:
+        if t.not_converged:
+            continue
+        for p in t.patterns:
+            found.setdefault((p.effect, p.name), []).append((float(p.size), float(p.size_se) ** 2))
+    out = []
+    for (effect, name), values in found.items():
+        v = np.array([a for a, _ in values])
+        w = 1.0 / np.array([b for _, b in values])
+        mean = float(np.sum(w * v) / np.sum(w))
+        df = len(values) - 1
+        q = float(np.sum(w * (v - mean) ** 2)) if df >= 1 else None
+        out.append(TiledPattern(effect, name, mean, float(np.sqrt(1.0 / np.sum(w))), len(values), q, df,
+                                None if q is None else float(stats.chi2.sf(q, df)), _between_tile_spread(values)))
+    return out
 
 
 def combine_errors(tiles: Sequence[TileResult]) -> dict[str, Any]:
@@ -389,7 +445,8 @@ def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> T
         warnings += [w for w in t.warnings if not w.startswith("only a region of the")]
     effects = tiles[0].effects if tiles else []
     return TiledCheck((int(shape[0]), int(shape[1])), int(size), list(effects), tiles, params, q, df, p,
-                      combine_errors(tiles), combine_gof(tiles), combine_candidates(tiles), warnings)
+                      combine_errors(tiles), combine_gof(tiles), combine_candidates(tiles), warnings,
+                      combine_pattern_sizes(tiles))
 
 
 # ------------------------------------------------------------------------------------------------ running

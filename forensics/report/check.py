@@ -375,6 +375,10 @@ def tiles_report(tiled: TiledCheck, selection: SelectionResult | None = None,
     rep.table(["parameter", "value", "SE", "unit", "tiles", "spread", "p same"],
               [[p.estimate.label, _num(p.estimate.value), _num(p.estimate.se), p.estimate.unit, p.tiles,
                 _num(p.spread), _num(p.p_same)] for p in tiled.params])
+    if tiled.patterns:
+        rep.table(["pattern (size as the frames show it)", "value", "SE", "tiles", "spread", "p same"],
+                  [[f"{p.effect}.{p.name}", _num(p.size), _num(p.size_se), p.tiles, _num(p.spread), _num(p.p_same)]
+                   for p in tiled.patterns])
     rep.table(["channel", "error (pooled)", "gof p (Fisher)"],
               [[k, _num(tiled.error.get(k)), _num(tiled.gof.get(k))] for k in tiled.gof])
     rep.table(["candidate", "ΔBIC (summed)", "p (Holm)", "flagged", "flagged alone in tiles"],
