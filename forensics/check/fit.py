@@ -86,7 +86,7 @@ def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24) -> 
     if covers_normal:
         catalogue = ev.redetect(device)
         if not same_catalogue(catalogue, pixels.catalogue):
-            fitted = _fit_once(ev, ev.pixels(catalogue), fitted.effects, max_cycles)
+            fitted = _fit_once(ev, ev.pixels(catalogue), fitted.effects, max_cycles, start=fitted.effects)
     return fitted
 
 
@@ -108,7 +108,25 @@ def at_null(effect: Effect) -> Effect:
     return dataclasses.replace(effect, **start) if start else effect
 
 
-def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cycles: int) -> FittedModel:
+def warm_start(effects: Sequence[Effect], start: Sequence[Effect], indices: Sequence[int]) -> list[Effect]:
+    """``effects`` with the free parameters of ``effects[indices]`` taken from the same effect in ``start`` (a
+    previous fit of the same model); everything else — patterns, their spreads, the noise — starts as in a cold
+    fit.  Why: the refit after re-detection starts from the first fit's global parameters, which the new pixel
+    classes move little; from the nulls it spent as many cycles again finding them."""
+    by_key = {e.key: e for e in start}
+    out = list(effects)
+    for i in indices:
+        old = by_key.get(out[i].key)
+        if old is not None and type(old) is type(out[i]):
+            values = {n: getattr(old, n) for n in out[i].free_params()}
+            out[i] = dataclasses.replace(out[i], **values) if values else out[i]
+    return out
+
+
+def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cycles: int,
+              start: Sequence[Effect] | None = None) -> FittedModel:
+    """One fit of every channel; ``start``: a previous fit of the same model whose global pixel parameters the
+    pixel fit starts from (:func:`warm_start`)."""
     effects = [at_null(e) for e in SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects),
                                                t0=float(ev.times[0])).effects]  # in stage order
     # ---------------------------------------------------------------- arrivals
@@ -131,6 +149,8 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     p_idx = [i for i, e in enumerate(effects) if is_pixel(e)]
     for i in p_idx:
         effects[i] = bespoke_fit(effects[i], ev)
+    if start is not None:
+        effects = warm_start(effects, start, p_idx)
     # a first look at the noise (the pixel channel's censored means near 0 and full scale depend on it)
     n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
     first = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx],
