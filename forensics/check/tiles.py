@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import stats
 
-from forensics._shared.errors import UsageError
+from forensics._shared.errors import InputError, UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
 from forensics.check.diagnosis import FLAG_DBIC, FLAG_P
@@ -437,16 +437,30 @@ def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> T
     warnings = []
     failed = [t for t in tiles if t.not_converged]
     if failed:
-        where = "; ".join(f"rows {t.tile.core[0]}–{t.tile.core[0] + t.tile.core[2] - 1}, columns "
-                          f"{t.tile.core[1]}–{t.tile.core[1] + t.tile.core[3] - 1}" for t in failed[:5])
-        warnings.append(f"{len(failed)} of {len(tiles)} tiles did not converge and are left out of every combined "
-                        f"figure ({where}{' …' if len(failed) > 5 else ''})")
-    for t in tiles[:1]:  # what every tile says about the data (the design, the fields missing) is said once
-        warnings += [w for w in t.warnings if not w.startswith("only a region of the")]
-    effects = tiles[0].effects if tiles else []
+        where = "; ".join(_where(t) for t in failed[:5])
+        skipped = [t.not_converged[0] for t in failed if t.not_converged[0].startswith("not checked: ")]
+        warnings.append(f"{len(failed)} of {len(tiles)} tiles did not converge or could not be checked and are left "
+                        f"out of every combined figure ({where}{' …' if len(failed) > 5 else ''})"
+                        + (f"; the first not checked: {skipped[0][len('not checked: '):]}" if skipped else ""))
+    if tiles and all(t.not_converged and t.not_converged[0].startswith("not checked: ") for t in tiles):
+        raise InputError("no tile of the frames could be checked: " + tiles[0].not_converged[0])
+    empty = [t for t in tiles if not t.not_converged and not any(v is not None for v in t.classes.values())]
+    if empty:
+        warnings.append(f"{len(empty)} tile(s) gave no held-out error (no usable pixel means there, e.g. a dead or "
+                        "saturated part of the sensor): " + "; ".join(_where(t) for t in empty[:5]))
+    usable = [t for t in tiles if not t.not_converged and t not in empty]
+    if usable:  # what every tile says about the data (the design, the fields missing): the best-measured tile's
+        best = max(usable, key=lambda t: sum(t.held_out.values()))
+        warnings += [w for w in best.warnings if not w.startswith("only a region of the")]
+    effects = next((t.effects for t in tiles if t.effects), [])
     return TiledCheck((int(shape[0]), int(shape[1])), int(size), list(effects), tiles, params, q, df, p,
                       combine_errors(tiles), combine_gof(tiles), combine_candidates(tiles), warnings,
                       combine_pattern_sizes(tiles))
+
+
+def _where(t: TileResult) -> str:
+    top, left, h, w = t.tile.core
+    return f"rows {top}–{top + h - 1}, columns {left}–{left + w - 1}"
 
 
 # ------------------------------------------------------------------------------------------------ running
@@ -455,7 +469,13 @@ def check_tile(data: Dataset, item: tuple[Tile, list[Any], np.random.SeedSequenc
     from forensics.check.pipeline import check
 
     tile, add, seeds, n_sim = item
-    result = check(data, add=add, rng=np.random.default_rng(seeds), baseline=False, n_sim=n_sim, region=tile.region)
+    try:
+        result = check(data, add=add, rng=np.random.default_rng(seeds), baseline=False, n_sim=n_sim,
+                       region=tile.region)
+    except InputError as exc:
+        # a part of the frame the check cannot use (e.g. content-free or saturated there): the tile is named and
+        # left out, the others still count
+        return TileResult(tile, [], [], {}, {}, None, {}, [], [f"not checked: {exc}"], [])
     return TileResult.of(tile, result)
 
 

@@ -156,3 +156,22 @@ def test_auto_chooses_on_the_central_tile_and_checks_every_tile_with_that_model(
     assert out["selection"]["path"][0]["step"] == "base"
     assert {"dark_current", "shot_noise"} <= set(out["effects"])  # what the series has, found on one tile
     assert len(out["tiles"]) == 6 and not any(c["flagged"] for c in out["candidates"])
+
+
+def test_a_dead_corner_is_named_and_left_out(flat_rate, tmp_path):
+    """Every frame reads 0 in one tile's core (a dead part of the sensor): that tile gives nothing, is named, and
+    the other five still give the combined figures (within 2 SE of the whole series' tiles)."""
+    from astropy.io import fits
+
+    folder, tiled, _ = flat_rate
+    for f in sorted(folder.glob("*.fits")):
+        with fits.open(f) as hdul:
+            data, header = hdul[0].data.copy(), hdul[0].header.copy()
+        data[:48, :43] = 0
+        fits.PrimaryHDU(data, header).writeto(tmp_path / f.name)
+    dead = check_tiles(tmp_path, add=ADD, size=48)
+    assert any("rows 0–47, columns 0–42" in w for w in dead.warnings)
+    whole = {p.estimate.label: p.estimate for p in tiled.params}
+    for p in dead.params:
+        assert p.tiles == 5
+        assert abs(p.estimate.value - whole[p.estimate.label].value) <= 2 * p.estimate.se, p.estimate.label
