@@ -55,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
             lines.append(f"{row['frame_type']:>10} {exposure:>12} {setpoint:>14} {row['n']:>6} {measured:>16}")
             if row["off_set_point"]:
                 lines.append(f"  more than 1 °C off the set point: {', '.join(row['off_set_point'])}")
+        lines += [f"unreadable: {why}; replace or remove it" for why in s.unreadable]
         return "\n".join(lines)
 
     emit(args, lambda: printable(text()), summary.to_dict())

@@ -116,7 +116,7 @@ def _frame_z(state: RoundState, group: int, local: int, path: str, t: float
     return y, e, z, valid
 
 
-def test_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, float], ...]]
+def test_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, float, bool], ...]]
               ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     """Work item of a round: per pixel, the largest z over a chunk's frames, its frame and its value."""
     group, frames = item
@@ -124,21 +124,21 @@ def test_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, float], 
     zmax = np.full(size, -np.inf, np.float32)
     where = np.full(size, -1, np.int32)
     value = np.zeros(size, np.float32)
-    for local, path, t in frames:
+    for local, path, t, _bias in frames:
         y, _, z, valid = _frame_z(state, group, local, path, t)
         better = valid & (z > zmax)
         zmax[better], where[better], value[better] = z[better], local, y[better]
     return group, zmax, where, value
 
 
-def diagnose_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, float], ...]]
+def diagnose_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, float, bool], ...]]
                   ) -> tuple[int, list[FrameStats], np.ndarray]:
     """Work item of the diagnostic pass: each frame's statistics and the chunk's per-pixel residual sum of squares."""
     group, frames = item
     fit = state.lines[group]
     esq = np.zeros(state.shape[0] * state.shape[1], np.float64)
     out = []
-    for local, path, t in frames:
+    for local, path, t, bias in frames:
         y, e, z, valid = _frame_z(state, group, local, path, t)
         kept = valid & (z <= state.noise.k)
         level = float(np.median(y[kept] - fit["offset"][kept])) if kept.any() else math.nan
@@ -149,7 +149,7 @@ def diagnose_item(state: RoundState, item: tuple[int, tuple[tuple[int, str, floa
         med_z = float(np.median(zk)) if zk.size else math.nan
         ratio = 1.4826 * float(np.median(np.abs(zk - med_z))) if zk.size else math.nan
         frame_rn = None
-        if t == 0 and kept.any():
+        if bias and kept.any():
             with np.errstate(divide="ignore", invalid="ignore"):
                 q = 1 - 1 / fit["n"][kept] - fit["mean_t"][kept] ** 2 / fit["sxx"][kept]
                 scaled = e[kept] / np.sqrt(q)
@@ -225,7 +225,7 @@ def robust_fit(plan: SeriesPlan, sums: list[GroupSums], exposures: list[np.ndarr
                                        desc="dark series: diagnostics"):
         stats.update({(g, fs.local): fs for fs in frame_stats})
         esq[g] = part if esq[g] is None else esq[g] + part
-    jitter = [offset_jitter(g, len(members), exposures[g], stats) for g, members in enumerate(plan.groups)]
+    jitter = [offset_jitter(g, plan.biases(g), stats) for g in range(len(plan.groups))]
     misfit = [misfits(lines[g], esq[g], jitter[g], noise, g) for g in range(len(sums))]  # type: ignore[arg-type]
     return RobustFit(lines, drops, stats, esq, jitter, misfit)  # type: ignore[arg-type]
 
@@ -245,10 +245,12 @@ def _state(shape: tuple[int, int], sums: list[GroupSums], lines: list[LineFit], 
     return RoundState(shape, maps, noise, dropped)
 
 
-def offset_jitter(g: int, members: int, t: np.ndarray, stats: dict[tuple[int, int], FrameStats]) -> float:
-    """σ_o: the scatter of the biases' common-mode residuals (the frame-to-frame offset jitter), 0 if unknown."""
-    values = [stats[(g, local)].common_residual for local in range(members)
-              if t[local] == 0 and (g, local) in stats and math.isfinite(stats[(g, local)].common_residual)]
+def offset_jitter(g: int, biases: np.ndarray, stats: dict[tuple[int, int], FrameStats]) -> float:
+    """σ_o: the scatter of the biases' common-mode residuals (the frame-to-frame offset jitter), 0 if unknown.
+
+    ``biases``: which of the group's frames are biases (:meth:`SeriesPlan.biases`)."""
+    values = [stats[(g, local)].common_residual for local in range(biases.size)
+              if biases[local] and (g, local) in stats and math.isfinite(stats[(g, local)].common_residual)]
     return float(np.std(values, ddof=1)) if len(values) >= 3 else 0.0
 
 

@@ -112,6 +112,12 @@ class SeriesPlan:
     excluded: dict[int, str] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
 
+    def biases(self, group: int) -> np.ndarray:
+        """Which of a group's frames are biases, by their frame type: a bias is a bias whatever exposure its header
+        gives (some cameras record their shortest exposure, e.g. 0.12 s, for a closed-shutter read-out), and its
+        exposure stays the one recorded in the pixels' lines."""
+        return np.array([self.frames[i].frame_type == "bias" for i in self.groups[group]], bool)
+
     def label(self, group: int) -> str:
         sp = self.setpoints[group]
         if sp is not None:
@@ -264,15 +270,16 @@ class GroupSums:
         return self
 
 
-def sums_item(item: tuple[int, tuple[tuple[int, str, float], ...], float | None]) -> tuple[int, GroupSums]:
-    """Work item of pass 1: ``(group, ((frame index in group, path, exposure), …), saturation)`` → partial sums.
+def sums_item(item: tuple[int, tuple[tuple[int, str, float, bool], ...], float | None]) -> tuple[int, GroupSums]:
+    """Work item of pass 1: ``(group, ((frame index in group, path, exposure, is bias), …), saturation)`` → partial
+    sums.
 
     Module-level so the execution layer's workers import it; it reads its frames itself.
     """
     group, frames, saturation = item
     acc: GroupSums | None = None
     shape = None
-    for local, path, t in frames:
+    for local, path, t, bias in frames:
         data = load_frame(path)
         shape = _check_shape(data, shape, path)
         y = data.astype(np.float64).ravel()
@@ -286,7 +293,7 @@ def sums_item(item: tuple[int, tuple[tuple[int, str, float], ...], float | None]
         acc.sy += y
         acc.sty += t * y
         acc.syy += y * y
-        if t == 0:
+        if bias:
             acc.sb += y
             acc.sbb += y * y
             acc.n_bias += 1
@@ -537,11 +544,15 @@ def fit_dark_series(plan: SeriesPlan, gain: float | None = None, saturation: flo
     return DarkSeriesFit(shape, groups, reports, gain_used, source, gain_info, saturation, settings, warnings)
 
 
-def chunk_items(plan: SeriesPlan, exposures: list[np.ndarray]) -> list[tuple[int, tuple[tuple[int, str, float], ...]]]:
-    """Each group's frames cut into work items of :data:`CHUNK_FRAMES`: ``(group, ((frame in group, path, exposure), …))``."""
+def chunk_items(plan: SeriesPlan, exposures: list[np.ndarray]
+                ) -> list[tuple[int, tuple[tuple[int, str, float, bool], ...]]]:
+    """Each group's frames cut into work items of :data:`CHUNK_FRAMES`: ``(group, ((frame in group, path, exposure,
+    is bias), …))``."""
     out = []
     for g, members in enumerate(plan.groups):
-        entries = [(local, plan.frames[i].path, float(exposures[g][local])) for local, i in enumerate(members)]
+        biases = plan.biases(g)
+        entries = [(local, plan.frames[i].path, float(exposures[g][local]), bool(biases[local]))
+                   for local, i in enumerate(members)]
         out += [(g, tuple(entries[s:s + CHUNK_FRAMES])) for s in range(0, len(entries), CHUNK_FRAMES)]
     return out
 
@@ -676,7 +687,7 @@ def _summarise(plan: SeriesPlan, sums: list[GroupSums], robust: Any, exposures: 
                 rep.dark_level = fs.dark_level
                 rep.read_noise, rep.tested = fs.frame_read_noise, fs.tested
             rep.level_deviation = None if not math.isfinite(deviation[local]) else float(deviation[local])
-            rep.problems = _frame_problems(rep, float(deviation_se[local]))
+            rep.problems = _frame_problems(rep, float(deviation_se[local]), jitter > 0, s.n_bias >= 2)
         groups.append(_group_fit(plan, g, s, robust, t, noise, [index_of[i] for i in members]))
     return groups, reports
 
@@ -721,14 +732,21 @@ def _deviations(residuals: np.ndarray, t: np.ndarray, jitter: float, sampling: n
     return out, se
 
 
-def _frame_problems(rep: FrameReport, deviation_se: float) -> list[str]:
+def _frame_problems(rep: FrameReport, deviation_se: float, jitter_known: bool = True,
+                    read_noise_measured: bool = True) -> list[str]:
+    """What is wrong with a frame.  Without the offset jitter (fewer than three biases) a frame's level is not
+    tested: its standard error would hold the pixel sampling only, and every frame's ordinary jitter (a few tenths
+    of an ADU) would name it.  Without two biases the read noise comes from the darks' scatter, their dark shot
+    noise included, so the model's noise is an upper bound: only frames noisier than it are named."""
     problems = []
     dev = rep.level_deviation
-    if dev is not None and deviation_se > 0 and abs(dev) > FRAME_Z * deviation_se:
+    if jitter_known and dev is not None and deviation_se > 0 and abs(dev) > FRAME_Z * deviation_se:
         per_s = f" ({dev / rep.exposure_s:+.3g} ADU/s)" if rep.exposure_s > 0 else ""
         problems.append(f"median level {dev:+.2f} ADU{per_s} off the line of the other frames, "
                         f"{abs(dev) / deviation_se:.1f}× its standard error (offset jitter σ_o from the biases)")
-    if rep.noise_ratio is not None and math.isfinite(rep.noise_ratio) and abs(rep.noise_ratio - 1) > NOISE_TOLERANCE:
+    ratio = rep.noise_ratio
+    if ratio is not None and math.isfinite(ratio) and (ratio - 1 > NOISE_TOLERANCE
+                                                        or (read_noise_measured and 1 - ratio > NOISE_TOLERANCE)):
         problems.append(f"noise {rep.noise_ratio:.2f}× the read + shot noise model")
     if rep.tested and rep.outliers > OUTLIER_SHARE * rep.tested:
         problems.append(f"{rep.outliers} samples ({rep.outliers / rep.tested:.1%}) rejected as outliers: a light "

@@ -25,6 +25,9 @@ class DatasetSummary:
     epochs: list[dict[str, Any]] = field(default_factory=list)
     conditions: list[dict[str, Any]] = field(default_factory=list)
     frame_types: list[dict[str, Any]] = field(default_factory=list)
+    #: files whose header reads but whose pixels cannot (a truncated FITS file), with why: every command that reads
+    #: pixels refuses them, so ``info`` names them first
+    unreadable: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -43,8 +46,10 @@ def summarize_dataset(ds: Dataset) -> DatasetSummary:
             epochs.append({"start": float(t.min()), "end": float(t.max()), "n": len(epoch)})
     conditions = [{"exposure_s": k[0], "iso": k[1], "temperature_c": k[2], "subject": k[3], "n": len(v)}
                   for k, v in ds.conditions().items()]
+    unreadable = [str(f.info().extra["truncated"]) for f in ds if f.info().extra.get("truncated")]
     return DatasetSummary(str(ds.root), len(ds), list(shape), dtype, ds.has_manifest, ds.devices(),
-                          [min(known), max(known)] if known else None, epochs, conditions, frame_types(ds))
+                          [min(known), max(known)] if known else None, epochs, conditions, frame_types(ds),
+                          unreadable)
 
 
 def frame_types(ds: Dataset) -> list[dict[str, Any]]:

@@ -36,7 +36,7 @@ import datetime as _dt
 import os
 import re
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +82,8 @@ class FitsHeader:
     gain_e_per_adu: float | None = None
     binning: tuple[int, int] | None = None
     warnings: tuple[str, ...] = field(default=())
+    #: why the pixels cannot be read although the header can (the file is shorter than the header says), or None
+    truncated: str | None = None
 
     @property
     def device(self) -> str | None:
@@ -266,11 +268,14 @@ def read_fits_header(path: str | os.PathLike) -> FitsHeader:
     Raises
     ------
     InputError
-        The file is missing, not FITS, holds no image or several, or is a data cube.
+        The file is missing, not FITS, holds no image or several, or is a data cube.  A file shorter than its
+        header says is described, with ``truncated`` saying so (:func:`read_fits` refuses it).
     """
+    import astropy.io.fits  # noqa: F401  (imported first: astropy's logger replaces the warnings hook on import)
+
     path = Path(path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # astropy's header fix-up notes; what matters is checked below
+    with warnings.catch_warnings(record=True) as noted:
+        warnings.simplefilter("always")  # astropy's header fix-up notes are kept, not shown; truncation is checked
         hdul = _open(path)
         try:
             index = _image_hdu(path, hdul)
@@ -278,6 +283,12 @@ def read_fits_header(path: str | os.PathLike) -> FitsHeader:
             info = _header_info(path, index, header)
         finally:
             hdul.close()
+    # astropy finds a file shorter than its headers promise while reading them (and only warns): noted here, so that
+    # a header-only look (``forensics info``) names the file that :func:`read_fits` will refuse
+    short = next((str(w.message) for w in noted if "truncated" in str(w.message).lower()), None)
+    if short is not None:
+        note = f"{path}: {_first_line(Exception(short))}: the file is truncated (its pixels cannot be read)"
+        info = replace(info, truncated=note)
     require_pixels(info.shape[0] * info.shape[1], str(path))
     return info
 

@@ -281,14 +281,14 @@ def _spec_info(path: Path, spec: Any) -> ImageInfo:
 def fits_info(path: str | os.PathLike) -> ImageInfo:
     """A FITS frame's :class:`ImageInfo`: size, dtype, DATE-OBS, EXPTIME, INSTRUME and serial, and in ``extra`` the
     conditions only FITS carries (``temperature_c``, ``set_temperature_c``, ``frame_type``, ``gain_e_per_adu``,
-    ``binning``, ``device``, ``warnings``; :mod:`forensics.io.fits`)."""
+    ``binning``, ``device``, ``warnings``, ``truncated``; :mod:`forensics.io.fits`)."""
     from forensics.io.fits import read_fits_header
 
     header = read_fits_header(path)
     extra = {"temperature_c": header.temperature_c, "set_temperature_c": header.set_temperature_c,
              "frame_type": header.frame_type, "gain_e_per_adu": header.gain_e_per_adu,
              "binning": list(header.binning) if header.binning else None, "device": header.device,
-             "warnings": list(header.warnings)}
+             "warnings": list(header.warnings), "truncated": header.truncated}
     return ImageInfo(path=Path(path), width=header.shape[1], height=header.shape[0], channels=1, dtype=header.dtype,
                      captured=header.captured, exposure_s=header.exposure_s, model=header.instrument,
                      serial=header.serial, extra=extra)

@@ -142,3 +142,20 @@ def test_a_set_point_that_is_not_a_number_is_a_label(tmp_path):
     assert list(ds.conditions()) == [(60.0, None, pytest.approx(-9.8), DARK_SUBJECT)]
     rows = summarize_dataset(ds).frame_types
     assert [(r["frame_type"], r["set_temperature_c"], r["n"]) for r in rows] == [("dark", None, 1)]
+
+
+def test_info_names_a_truncated_frame_that_every_pixel_reader_refuses(folder, cli):
+    """A frame cut short (an interrupted copy) has a whole header: ``info`` used to list the folder as sound while
+    every command reading pixels stopped on the file.  ``info`` now names it (its header is still described, the
+    sound frames are not named), and reading its pixels still stops with one line naming it."""
+    (folder / "e-light.fits.fz").unlink()  # only uncompressed frames: the dark series below
+    whole = (folder / "b-dark.fit").read_bytes()
+    (folder / "g-cut.fits").write_bytes(whole[: len(whole) - 1500])  # its data block, 1500 bytes short
+    summary = summarize_dataset(open_dataset(folder))
+    assert len(summary.unreadable) == 1 and "g-cut.fits" in summary.unreadable[0]
+    assert "truncated" in summary.unreadable[0]
+    code, out, _ = cli("info", str(folder))
+    assert code == 0 and "unreadable:" in out and "g-cut.fits" in out
+    with pytest.raises(InputError, match="g-cut.fits: cannot read the image data") as err:
+        [frame.load() for frame in open_dataset(folder)]
+    assert "\n" not in str(err.value)
