@@ -264,15 +264,50 @@ class Lag1:
         return self.cross / self.square if self.square > 0 else None
 
 
+def temperature_key(frame: Any) -> tuple[str, float | None]:
+    """What a frame's temperature is grouped by: its set point where it has one and the measured temperature
+    lies within :data:`forensics.io.fits.SETPOINT_TOLERANCE_C` of it, else the measured temperature.
+
+    Why: a cooled camera's thermistor wanders and is quantised (the 2017 STL-1001E's −10 °C biases read −10.20 …
+    −9.79 °C), and grouping by the reading split repeats of one condition into conditions of one or two frames
+    (the 2017 series: 27 conditions instead of 15; a wander of 0.6 °C left 2 of 50 repeated).  A frame that never
+    reached its set point keeps its reading (named by :func:`off_set_point`).
+
+    Examples
+    --------
+    >>> from pathlib import Path
+    >>> from forensics.io.dataset import Frame
+    >>> temperature_key(Frame(Path("d.fit"), "d.fit", temperature_c=-9.79, extra={"set_temperature_c": "-10"}))
+    ('set point', -10.0)
+    >>> temperature_key(Frame(Path("d.fit"), "d.fit", temperature_c=-7.0, extra={"set_temperature_c": "-10"}))
+    ('measured', -7.0)
+    """
+    from forensics.io.dataset import set_point
+    from forensics.io.fits import SETPOINT_TOLERANCE_C
+
+    target = set_point(frame)
+    measured = frame.temperature_c
+    if target is not None and (measured is None or abs(measured - target) <= SETPOINT_TOLERANCE_C):
+        return ("set point", target)
+    return ("measured", measured)
+
+
 def group_frames(ds: Dataset, epoch: np.ndarray, epoch_times: np.ndarray) -> list[Group]:
     """Frames grouped by (epoch, exposure, ISO, temperature, subject, light), in order of epoch and first frame
-    (``light``: the manifest's optional column of that name, e.g. the irradiance of a photon-transfer series)."""
+    (``light``: the manifest's optional column of that name, e.g. the irradiance of a photon-transfer series).
+    The temperature is the set point where the frame reached it (:func:`temperature_key`); a group's temperature
+    is then its frames' mean measured temperature (the set point where none was measured)."""
     keys: dict[tuple[Any, ...], list[int]] = {}
     for i, f in enumerate(ds.frames):
         light = f.extra.get(LIGHT_COLUMN) or None
-        keys.setdefault((int(epoch[i]), f.exposure_s, f.iso, f.temperature_c, f.subject, light), []).append(i)
-    return [Group(j, k[0], float(epoch_times[k[0]]), k[1], k[2], k[3], k[4], idx, k[5])
-            for j, (k, idx) in enumerate(sorted(keys.items(), key=lambda kv: (kv[0][0], kv[1][0])))]
+        keys.setdefault((int(epoch[i]), f.exposure_s, f.iso, temperature_key(f), f.subject, light), []).append(i)
+    groups = []
+    for j, (k, idx) in enumerate(sorted(keys.items(), key=lambda kv: (kv[0][0], kv[1][0]))):
+        measured = [ds.frames[i].temperature_c for i in idx]
+        temperature = (float(np.mean(measured)) if all(t is not None for t in measured) and len(idx) > 1
+                       else measured[0] if measured[0] is not None else k[3][1])
+        groups.append(Group(j, k[0], float(epoch_times[k[0]]), k[1], k[2], temperature, k[4], idx, k[5]))
+    return groups
 
 
 PHOTOGRAPHS_NOTE = ("the frames are ordinary photographs (different scenes, not repeats of one), pooled per "

@@ -1,0 +1,38 @@
+"""Frames of one condition grouped by their temperature set point, not the thermistor's reading
+(``forensics.check.measurements.group_frames``)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from forensics.check.measurements import group_frames
+from forensics.io.dataset import Dataset, Frame
+
+
+def _frame(name: str, exposure: float, measured: float | None, setpoint: float | None, subject: str = "dark") -> Frame:
+    extra = {"set_temperature_c": "" if setpoint is None else str(setpoint)}
+    return Frame(Path(name), name, subject=subject, temperature_c=measured, extra=extra, _exposure_s=exposure,
+                 _exif_done=True)
+
+
+def test_a_wandering_thermistor_does_not_split_a_condition():
+    """Ten 60 s darks at the −5 °C set point read −5.6 … −4.4 °C (a wander of 0.6 °C, as a thermistor's read-out
+    gives): one condition of ten frames at their mean measured temperature; a frame 3 °C off its set point (never
+    settled) is a condition of its own at the temperature measured; biases stay apart from darks."""
+    readings = np.linspace(-5.6, -4.4, 10)
+    frames = [_frame(f"d{i}.fit", 60.0, float(t), -5.0) for i, t in enumerate(readings)]
+    frames.append(_frame("hot.fit", 60.0, -2.0, -5.0))
+    frames += [_frame(f"b{i}.fit", 0.0, -5.1, -5.0) for i in range(3)]
+    groups = group_frames(Dataset(Path("."), frames), np.zeros(len(frames), int), np.zeros(1))
+    assert [g.n for g in groups] == [10, 1, 3]
+    assert groups[0].temperature_c == pytest.approx(float(readings.mean()))
+    assert groups[1].temperature_c == -2.0
+    assert groups[2].exposure_s == 0.0 and groups[2].temperature_c == pytest.approx(-5.1)
+
+
+def test_without_a_set_point_the_reading_groups():
+    frames = [_frame("a.png", 1.0, 25.0, None), _frame("b.png", 1.0, 25.0, None), _frame("c.png", 1.0, 30.0, None)]
+    groups = group_frames(Dataset(Path("."), frames), np.zeros(3, int), np.zeros(1))
+    assert [(g.n, g.temperature_c) for g in groups] == [(2, 25.0), (1, 30.0)]
