@@ -333,14 +333,16 @@ def with_sizes(ev: Evidence, pixels: PixelData, patterns: list[PatternEstimate],
                effects: list[Effect], derivatives: list[np.ndarray]) -> list[PatternEstimate]:
     """Each pixel-local pattern's size as the frames show it, with its standard error
     (:func:`~forensics.check.pixels.pattern_size`: split-half cross-product, free of the noise floor; the fitted
-    values' rms depends on the floor's accuracy and on how much of the pattern the 7 × 7 scene estimate absorbs).
+    values' rms depends on the floor's accuracy and on how much of the pattern the 7 × 7 scene estimate absorbs),
+    each profiled against the model's other pixel-local patterns.
     """
     sized = {}
     ok = ev.usable & (pixels.classes == NORMAL)
-    for (i, p), x in zip(local, derivatives):
+    for n, ((i, p), x) in enumerate(zip(local, derivatives)):
         if not p.random_effect:
             continue
-        est = pattern_size(ev.meas, pixels, x, ok, ev.streams.stream(PATTERN_SIZE_STREAM))
+        others = [d for m, d in enumerate(derivatives) if m != n]
+        est = pattern_size(ev.meas, pixels, x, ok, ev.streams.stream(PATTERN_SIZE_STREAM), others)
         if est is not None and math.isfinite(est.se):
             sized[effects[i].key, p.name] = est
     return [dataclasses.replace(pe, size=sized[pe.effect, pe.name].sigma, size_se=sized[pe.effect, pe.name].se)
