@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.fft
+from threadpoolctl import ThreadpoolController
 
 if TYPE_CHECKING:
     from forensics.impact.iriscode import IrisCode
@@ -191,6 +192,10 @@ def shift_counts(codes_a: Sequence[IrisCode], codes_b: Sequence[IrisCode], max_s
     # Products of a sub-block of a's rows with the b chunk: 2F values per pair.
     sub_a = int(max(1, min(chunk_a, memory // 8 // (2 * n_freq * 8 * chunk_b))))
     buffer = np.empty(2 * n_freq * sub_a * chunk_b)
+    # The products are hundreds of mid-sized BLAS calls: on several BLAS threads they cost several times the
+    # CPU of one thread (threads spin between calls, worse when other processes share the cores), so each block
+    # runs on one, as in the experiment's worker processes; parallelism belongs to the caller's workers.
+    blas = ThreadpoolController()
     for i0 in range(0, na, chunk_a):
         a_diff_re, a_diff_im, a_valid_re, a_valid_im = _spectra(codes_a[i0:min(i0 + chunk_a, na)], layout, "a")
         for j0 in range(0, nb, chunk_b):
@@ -198,8 +203,10 @@ def shift_counts(codes_a: Sequence[IrisCode], codes_b: Sequence[IrisCode], max_s
             b_diff, b_valid = _spectra(codes_b[cols_b], layout, "b")
             for k0 in range(0, a_diff_re.shape[1], sub_a):
                 k = slice(k0, min(k0 + sub_a, a_diff_re.shape[1]))
-                diff, diff_ok = _rounded(_correlate(a_diff_re[:, k], a_diff_im[:, k], b_diff, inverse, buffer))
-                valid, valid_ok = _rounded(_correlate(a_valid_re[:, k], a_valid_im[:, k], b_valid, inverse, buffer))
+                with blas.limit(limits=1, user_api="blas"):
+                    diff, diff_ok = _rounded(_correlate(a_diff_re[:, k], a_diff_im[:, k], b_diff, inverse, buffer))
+                    valid, valid_ok = _rounded(_correlate(a_valid_re[:, k], a_valid_im[:, k], b_valid, inverse,
+                                                          buffer))
                 rows_a = slice(i0 + k.start, i0 + k.stop)
                 if diff_ok and valid_ok:
                     yield rows_a, cols_b, diff, valid
