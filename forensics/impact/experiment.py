@@ -44,7 +44,9 @@ are recomputed for it; ``reused_templates`` counts them.
 Memory of the score reuse: a work item holds the scores of the previous and the current age, n (n − 1) / 2
 float64 per matcher and protocol (2,240 images: 20 MB each, 480 MB at most for six matchers and both
 protocols), and every worker holds the first ages' scores its chains start from (240 MB per distinct first
-age), whatever the number of ages or sensors.
+age), whatever the number of ages or sensors; the chains also hold the previous age's templates (about 30 kB
+per image for the six built-ins), and a cross-correlation comparison (``cr``, ``qsw``, Masek) works in up to
+≈ 0.6 GB while it compares a band of rows (:func:`~forensics.impact.spectral.shift_counts`).
 
 Resuming.  With a checkpoint folder (:class:`~forensics._shared.parallel.Checkpoint`), every finished work item
 — a (sensor, age), or with reuse a sensor's chain of later ages — writes its results (and at the first age the
