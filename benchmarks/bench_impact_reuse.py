@@ -51,7 +51,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+# The experiment's worker processes run BLAS on one thread each (forensics._shared.parallel); the projection to
+# 2 workers assumes the same, so the matrix products are timed on one thread too (set before numpy loads BLAS).
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
+import numpy as np  # noqa: E402
 
 from forensics._shared.rng import keyed_generator
 from forensics.impact.experiment import parse_sensors, run_impact, upper_band, upper_entries
@@ -162,6 +167,21 @@ def replay(versions: dict, digests: dict, structure, names: list[str], n: int, b
     return out, per_task
 
 
+def encodings(bands: dict, digests: dict, structure, names: list[str], n: int) -> dict:
+    """Templates each computed task encodes per algorithm, replaying the run's template reuse: all ``n`` in a
+    first-age task; in a chain, those whose band digest differs from the previous computed age's (the sensor's
+    first age before the chain's first step: ``experiment._chain_task`` starts from ``job.firsts``)."""
+    rep, first, chains = structure
+    out = {t: dict.fromkeys(names, n) for t in first}
+    for s, ages in chains.items():
+        before = digests[rep[s, 0]]
+        for a in ages:
+            now = digests[s, a]
+            out[s, a] = {m: sum(x is None or x != y for x, y in zip(bands[now, m], bands[before, m])) for m in names}
+            before = now
+    return out
+
+
 def two_core_wall(first: list, chains: dict, cost: dict, workers: int = 2) -> float:
     """Wall time of the run's two stages on ``workers`` processes: the first-age tasks, then the sensors' chains
     longest first (as ``experiment._run_tasks`` submits them), each item to the first free worker."""
@@ -176,47 +196,61 @@ def two_core_wall(first: list, chains: dict, cost: dict, workers: int = 2) -> fl
     return total
 
 
-def encode_cells(sets: dict, matchers) -> tuple[dict, float]:
-    """Template digests of every distinct set for every algorithm; CPU s per template digested."""
-    versions, hash_cpu, hashed = {}, 0.0, 0
+def encode_cells(sets: dict, matchers) -> tuple[dict, dict, float, float]:
+    """Template and band digests of every distinct set for every algorithm; CPU s per template and per band
+    digested (the band: the texture, mask and segmentation the algorithm's template is encoded from)."""
+    versions, bands, hash_cpu, band_cpu, hashed = {}, {}, 0.0, 0.0, 0
     for key, aged in sets.items():
         digs = {m.name: [] for m in matchers}
+        keys = {m.name: [] for m in matchers}
         for image in aged:
             for m in matchers:
-                template = m.encode(image)
+                band = m.segmenter.unwrap(image, m.radial, m.angular)
+                t0 = time.process_time()
+                keys[m.name].append(template_digest(band))
+                band_cpu += time.process_time() - t0
+                template = m.encode_texture(*band)
                 t0 = time.process_time()
                 digs[m.name].append(template_digest(template))
                 hash_cpu += time.process_time() - t0
                 hashed += 1
-        for name, d in digs.items():
-            versions[key, name] = d
-    return versions, hash_cpu / max(hashed, 1)
+        for name in digs:
+            versions[key, name], bands[key, name] = digs[name], keys[name]
+    return versions, bands, hash_cpu / max(hashed, 1), band_cpu / max(hashed, 1)
 
 
-def time_encoding(images, matchers) -> tuple[float, dict, dict]:
-    """CPU s per image of the segmentation, of each algorithm's features; compare CPU s per matrix entry."""
+def time_encoding(images, matchers) -> tuple[float, float, dict, dict]:
+    """CPU s per image of the segmentation and of the rubber sheets (one per distinct size, as the shared
+    segmenter unwraps them), of each algorithm's features from its sheet; compare CPU s per matrix entry."""
     n = len(images)
     segmenter = matchers[0].segmenter
-    seg_cpu, feature_cpu, compare_cpu = 0.0, dict.fromkeys([m.name for m in matchers], 0.0), {}
+    seg_cpu, sheet_cpu, compare_cpu = 0.0, 0.0, {}
+    feature_cpu = dict.fromkeys([m.name for m in matchers], 0.0)
     templates: dict[str, list] = {m.name: [] for m in matchers}
     for image in images:
         t0 = time.process_time()
         seg = segmenter.segment(image)
         seg_cpu += (time.process_time() - t0) / n
-        for m in matchers:        # each its own rubber sheet (normalisation counted with the features)
+        sheets = {}
+        for m in matchers:
+            size = (m.radial, m.angular)
+            if size not in sheets:
+                t0 = time.process_time()
+                sheets[size] = normalise(image, seg, *size, **segmenter.normalise_params)
+                sheet_cpu += (time.process_time() - t0) / n
             t0 = time.process_time()
-            texture, mask = normalise(image, seg, m.radial, m.angular, **segmenter.normalise_params)
-            templates[m.name].append(m.encode_texture(texture, mask, seg))
+            templates[m.name].append(m.encode_texture(*sheets[size], seg))
             feature_cpu[m.name] += (time.process_time() - t0) / n
-    # Per-entry cost at a realistic matrix size: the templates repeated to about 200 (vectorised comparisons
-    # have a per-call overhead that a 20 × 20 matrix would charge to each entry).
-    reps = max(1, -(-200 // n))
+    # Per-entry cost at the experiment's own call at 2,240 images: a band of upper_band(2240) = 280 rows against
+    # the bands' mean width, 1,120 columns (the measured templates repeated; vectorised comparisons prepare
+    # each row and column once per call, so a small matrix would overstate the cost per entry).
+    rows, cols = upper_band(PAPER["images"]), PAPER["images"] // 2
     for m in matchers:
-        many = templates[m.name] * reps
+        many = templates[m.name] * -(-cols // n)
         t0 = time.process_time()
-        compare_all(m, many, many)
-        compare_cpu[m.name] = (time.process_time() - t0) / len(many) ** 2
-    return seg_cpu, feature_cpu, compare_cpu
+        compare_all(m, many[:rows], many[:cols])
+        compare_cpu[m.name] = (time.process_time() - t0) / (rows * cols)
+    return seg_cpu, sheet_cpu, feature_cpu, compare_cpu
 
 
 def time_bootstrap(seed: int) -> float:
@@ -232,8 +266,9 @@ def time_bootstrap(seed: int) -> float:
     return time.process_time() - t0
 
 
-def check_against_run(frames, sensors_spec: str, ages, names, segmentation, seed, expected) -> None:
-    """Run the experiment on the measured images (symbolic links) and compare its comparison counts."""
+def check_against_run(frames, sensors_spec: str, ages, names, segmentation, seed, expected, reused: int) -> None:
+    """Run the experiment on the measured images (symbolic links) and compare its counts of comparisons and of
+    reused templates with the replay's."""
     with tempfile.TemporaryDirectory(prefix="bench-reuse-") as tmp:
         root = Path(tmp)
         with open(root / "manifest.csv", "w", newline="") as fh:
@@ -247,10 +282,11 @@ def check_against_run(frames, sensors_spec: str, ages, names, segmentation, seed
         sensors = parse_sensors(sensors_spec, source.shape()[:2], 8)
         result = run_impact(source, sensors, ages, load_matchers(names, segmentation=segmentation), rng=seed,
                             n_boot=100)
-    got = (result.computed_pairs, result.copied_pairs)
-    want = (sum(v["computed"] for v in expected.values()), sum(v["copied"] for v in expected.values()))
-    print(f"check: run_impact on these {len(frames)} images computed {got[0]} and copied {got[1]} comparisons; "
-          f"the replay: {want[0]} and {want[1]} -> {'EQUAL' if got == want else 'DIFFERENT'}")
+    got = (result.computed_pairs, result.copied_pairs, result.reused_templates)
+    want = (sum(v["computed"] for v in expected.values()), sum(v["copied"] for v in expected.values()), reused)
+    print(f"check: run_impact on these {len(frames)} images computed {got[0]} and copied {got[1]} comparisons and "
+          f"reused {got[2]} templates; the replay: {want[0]}, {want[1]} and {want[2]} -> "
+          f"{'EQUAL' if got == want else 'DIFFERENT'}")
     if got != want:
         raise SystemExit("bench_impact_reuse: the replay does not match the run")
 
@@ -259,10 +295,11 @@ def measure(images, sensors, ages, names, args) -> dict:
     """Every measurement the projection needs (the slow part: ageing, encoding, timing)."""
     digests, sets, digest_cpu = aged_cells(images, sensors, ages, args.seed)
     matchers = load_matchers(names, segmentation=args.segmentation)
-    seg_cpu, feature_cpu, compare_cpu = time_encoding(images, matchers)
-    versions, hash_cpu = encode_cells(sets, matchers)
-    return {"digests": digests, "versions": versions, "digest_cpu": digest_cpu, "seg_cpu": seg_cpu,
-            "feature_cpu": feature_cpu, "compare_cpu": compare_cpu, "hash_cpu": hash_cpu,
+    seg_cpu, sheet_cpu, feature_cpu, compare_cpu = time_encoding(images, matchers)
+    versions, bands, hash_cpu, band_cpu = encode_cells(sets, matchers)
+    return {"digests": digests, "versions": versions, "bands": bands, "digest_cpu": digest_cpu, "seg_cpu": seg_cpu,
+            "sheet_cpu": sheet_cpu, "feature_cpu": feature_cpu, "compare_cpu": compare_cpu, "hash_cpu": hash_cpu,
+            "band_cpu": band_cpu,
             "boot_cpu": time_bootstrap(args.seed), "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "load": os.getloadavg()[0]}
 
@@ -270,8 +307,8 @@ def measure(images, sensors, ages, names, args) -> dict:
 def save_measurements(path: Path, settings: dict, m: dict) -> None:
     """The measurements as JSON (digests in hex; no image data)."""
     hexed = {**m, "digests": [[s, a, d.hex()] for (s, a), d in m["digests"].items()],
-             "versions": [[k.hex(), name, [v.hex() if v is not None else None for v in vs]]
-                          for (k, name), vs in m["versions"].items()]}
+             **{part: [[k.hex(), name, [v.hex() if v is not None else None for v in vs]]
+                       for (k, name), vs in m[part].items()] for part in ("versions", "bands")}}
     path.write_text(json.dumps({"settings": settings, "measurements": hexed}))
 
 
@@ -281,8 +318,9 @@ def load_measurements(path: Path, settings: dict) -> dict:
         raise SystemExit(f"{path}: measured with {stored['settings']}, not {settings}")
     m = stored["measurements"]
     m["digests"] = {(s, a): bytes.fromhex(d) for s, a, d in m["digests"]}
-    m["versions"] = {(bytes.fromhex(k), name): [bytes.fromhex(v) if v is not None else None for v in vs]
-                     for k, name, vs in m["versions"]}
+    for part in ("versions", "bands"):
+        m[part] = {(bytes.fromhex(k), name): [bytes.fromhex(v) if v is not None else None for v in vs]
+                   for k, name, vs in m[part]}
     return m
 
 
@@ -311,6 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     sensors = parse_sensors(args.sensors, images[0].shape[:2], 8)
     t_start = time.process_time()
     settings = {k: str(getattr(args, k)) for k in ("images", "segmentation", "seed", "sensors", "algorithms")}
+    settings["format"] = "2"       # band digests and rubber-sheet times (files of format 1 lack them)
     if args.measurements and args.measurements.is_file():
         m = load_measurements(args.measurements, settings)
         print(f"measurements read from {args.measurements} (made {m['made']})")
@@ -318,9 +357,9 @@ def main(argv: list[str] | None = None) -> int:
         m = measure(images, sensors, ages, names, args)
         if args.measurements:
             save_measurements(args.measurements, settings, m)
-    digests, versions = m["digests"], m["versions"]
-    seg_cpu, feature_cpu, compare_cpu = m["seg_cpu"], m["feature_cpu"], m["compare_cpu"]
-    digest_cpu, hash_cpu, boot_cpu = m["digest_cpu"], m["hash_cpu"], m["boot_cpu"]
+    digests, versions, bands = m["digests"], m["versions"], m["bands"]
+    seg_cpu, sheet_cpu, feature_cpu, compare_cpu = m["seg_cpu"], m["sheet_cpu"], m["feature_cpu"], m["compare_cpu"]
+    digest_cpu, hash_cpu, band_cpu, boot_cpu = m["digest_cpu"], m["hash_cpu"], m["band_cpu"], m["boot_cpu"]
     structure = run_structure(digests, len(sensors), len(ages))
     rep, first, chains = structure
     tasks, distinct = len(rep), sum(1 for t in rep if rep[t] == t)
@@ -330,8 +369,9 @@ def main(argv: list[str] | None = None) -> int:
           + f"; distinct (sensor, age) tasks {distinct} of {tasks}: {len(first)} first-age, "
             f"{sum(len(c) for c in chains.values())} in the sensors' chains")
     print(f"digest pass: {1e3 * digest_cpu:.2f} ms CPU per aged image")
-    print(f"segmentation: {1e3 * seg_cpu:.1f} ms CPU per image; template digest {1e6 * hash_cpu:.0f} µs CPU per "
-          f"template; class bootstrap of one unit at 2,240 images: {boot_cpu:.2f} s CPU")
+    print(f"segmentation: {1e3 * seg_cpu:.1f} ms CPU per image, rubber sheets {1e3 * sheet_cpu:.1f} ms; template "
+          f"digest {1e6 * hash_cpu:.0f} µs CPU per template, band digest {1e6 * band_cpu:.0f} µs; class bootstrap "
+          f"of one unit at 2,240 images: {boot_cpu:.2f} s CPU")
 
     changed = {}
     for s_index, spec in enumerate(sensors):
@@ -347,12 +387,21 @@ def main(argv: list[str] | None = None) -> int:
 
     # The replay at the measured size (what --check compares with the run), then at the paper's.
     small, _ = replay(versions, digests, structure, names, n, upper_band(n))
+    encoded_small = encodings(bands, digests, structure, names, n)
     if args.check:
-        check_against_run(frames, args.sensors, ages, names, args.segmentation, args.seed, small)
+        reused = sum(n * len(names) - sum(c.values()) for t, c in encoded_small.items() if t not in first)
+        check_against_run(frames, args.sensors, ages, names, args.segmentation, args.seed, small, reused)
     big = PAPER["images"]
     draw = np.random.default_rng(args.seed).integers(n, size=big)
     drawn = {k: [v[d] for d in draw] for k, v in versions.items()}
     scaled, per_task = replay(drawn, digests, structure, names, big, upper_band(big))
+    encoded = encodings({k: [v[d] for d in draw] for k, v in bands.items()}, digests, structure, names, big)
+    kept = {}
+    for s_index, spec in enumerate(sensors):
+        steps = [sum(encoded_small[s_index, a].values()) / (n * len(names)) for a in chains.get(s_index, [])]
+        kept[spec.name] = f"{1 - np.mean(steps):.0%}" if steps else "-"
+    print("templates reused in a chain's step (band unchanged since the previous computed age; mean over steps "
+          "and algorithms): " + ", ".join(f"{k} {v}" for k, v in kept.items()))
 
     print("| algorithm | features ms/image | compare µs/entry | pairs copied (measured set) | entries computed at "
           "2,240, share of no score reuse |")
@@ -363,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {m} | {1e3 * feature_cpu[m]:.1f} | {1e6 * compare_cpu[m]:.1f} | {copied:.1%} | "
               f"{scaled[m]['entries'] / (distinct * full):.1%} |")
 
-    encode = big * (seg_cpu + sum(feature_cpu.values()))
+    encode = big * (seg_cpu + sheet_cpu + sum(feature_cpu.values()))
     segment_only = big * seg_cpu
     compare_task = sum(full * compare_cpu[m] for m in names)
     digest_all = tasks * big * digest_cpu
@@ -386,14 +435,24 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  + score reuse:         comparisons {compare_reused / 3600:.2f} h instead of "
           f"{distinct * compare_task / 3600:.2f} h, template digests {hashing / 3600:.2f} h: {scores / 3600:.1f} h "
           f"(2 cores: {scores / 7200:.1f} h; {whole / scores:.2f}× faster than whole-task reuse alone)")
-    task_cost = {t: encode + len(names) * big * hash_cpu * (1 if t in first else 2) + units * boot_cpu
+    # Template reuse: every task segments, unwraps and digests each algorithm's band; features only where the
+    # band changed since the chain's previous computed age (every template of a first-age task).
+    fixed = big * (seg_cpu + sheet_cpu + len(names) * band_cpu)
+    features = {t: sum(c * feature_cpu[m] for m, c in encoded[t].items()) for t in encoded}
+    templates = scores - distinct * encode + sum(fixed + f for f in features.values())
+    print(f"  + template reuse:      features {sum(features.values()) / 3600:.2f} h instead of "
+          f"{distinct * big * sum(feature_cpu.values()) / 3600:.2f} h, band digests "
+          f"{distinct * big * len(names) * band_cpu / 3600:.2f} h: {templates / 3600:.1f} h (2 cores: "
+          f"{templates / 7200:.1f} h)")
+    task_cost = {t: fixed + features[t] + len(names) * big * hash_cpu * (1 if t in first else 2) + units * boot_cpu
                  + sum(e * compare_cpu[m] for m, e in entries.items()) for t, entries in per_task.items()}
     wall = digest_all / 2 + two_core_wall(first, chains, task_cost)
     print(f"  on 2 worker processes (the first-age tasks, then one item per sensor's chain, longest first; the "
-          f"digest pass split): {wall / 3600:.1f} h (perfect halving: {scores / 7200:.1f} h)")
-    parts = {"segmentation": distinct * segment_only, "features": distinct * (encode - segment_only),
-             "comparisons": compare_reused, "bootstrap": boot, "digests (images, templates)": digest_all + hashing}
-    print("  shares of the remaining work: " + ", ".join(f"{k} {v / scores:.0%}" for k, v in parts.items()))
+          f"digest pass split): {wall / 3600:.1f} h (perfect halving: {templates / 7200:.1f} h)")
+    parts = {"segmentation": distinct * segment_only, "rubber sheets": distinct * big * sheet_cpu,
+             "features": sum(features.values()), "comparisons": compare_reused, "bootstrap": boot,
+             "digests (images, templates, bands)": digest_all + hashing + distinct * big * len(names) * band_cpu}
+    print("  shares of the remaining work: " + ", ".join(f"{k} {v / templates:.0%}" for k, v in parts.items()))
     print(f"(benchmark CPU {time.process_time() - t_start:.0f} s)")
     return 0
 

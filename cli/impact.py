@@ -124,5 +124,7 @@ def summary(result) -> str:
         share = result.copied_pairs / (result.copied_pairs + result.computed_pairs)
         lines.append(f"{result.copied_pairs:,} comparisons ({share:.0%}) copied from byte-identical templates, "
                      f"{result.computed_pairs:,} computed")
+    if result.reused_templates:
+        lines.append(f"{result.reused_templates:,} templates reused from the previous age (rubber-sheet band unchanged)")
     lines.append(f"({result.elapsed_s:.1f} s)")
     return "\n".join(lines)

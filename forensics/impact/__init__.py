@@ -4,10 +4,12 @@
 :mod:`~forensics.impact.segment` finds pupil and limbus (CAHT- or WAHET-like) and unwraps the iris (Daugman's
 rubber sheet); :mod:`~forensics.impact.matchers` holds the matcher interface, its registry and loader;
 :mod:`~forensics.impact.iriscode` the bit-packed codes and Hamming distances of the built-ins
-:mod:`~forensics.impact.masek` (1-D Log-Gabor) and :mod:`~forensics.impact.ko` (cumulative sums);
+:mod:`~forensics.impact.masek` (1-D Log-Gabor) and :mod:`~forensics.impact.ko` (cumulative sums), with
+:mod:`~forensics.impact.spectral` their exact counts at every shift by cross-correlation (long codes, many shifts);
 :mod:`~forensics.impact.experiment` ages a set with
 virtual sensors and measures the EER against age, with class-level bootstrap intervals and a paired trend
-test; :mod:`~forensics.impact.reuse` lets it copy the scores of pairs whose templates did not change.  No figures: those are in :mod:`forensics.report.impact`.
+test; :mod:`~forensics.impact.reuse` lets it copy the scores of pairs whose templates did not change, and the
+templates whose rubber-sheet band did not change.  No figures: those are in :mod:`forensics.report.impact`.
 """
 import lazy_loader as _lazy
 

@@ -179,6 +179,10 @@ class CrMatcher(IrisCodeMatcher):
         return IrisCode.from_bits(bits.transpose(3, 0, 1, 2).reshape(cols, -1),
                                   vmask.transpose(3, 0, 1, 2).reshape(cols, -1), segmentation)
 
+    def mask_groups(self) -> np.ndarray:
+        """A column's bits (2 bits × 2 paths × stripes) share the mask of their stripe."""
+        return np.tile(np.arange(self.radial // self.stripe), 4)
+
     def encode(self, image: np.ndarray) -> IrisCode:
         """Segment (cached), normalise and encode an eye image."""
         texture, mask, seg = self.segmenter.unwrap(image, self.radial, self.angular)

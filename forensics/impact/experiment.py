@@ -35,12 +35,18 @@ age (a new defect lands in the sampled iris of only some images): the score of a
 byte-identical to those of a pair already scored is copied (:mod:`forensics.impact.reuse`; exact, the
 templates' complete content is hashed).  For that, every sensor's first age runs first, one task each, and then
 each sensor's later distinct ages run in age order in one work item holding only the previous age's scores;
-``computed_pairs`` and ``copied_pairs`` count the comparisons.  Parallelism is then across sensors.
+``computed_pairs`` and ``copied_pairs`` count the comparisons.  Parallelism is then across sensors.  The
+chain also carries the previous age's templates with the digests of their rubber-sheet bands: a built-in
+matcher's template whose band is byte-identical to that age's is that template (its encoding is a deterministic
+function of the band; :func:`~forensics.impact.reuse.encode_reusing`), so only the segmentation and the unwrapping
+are recomputed for it; ``reused_templates`` counts them.
 
 Memory of the score reuse: a work item holds the scores of the previous and the current age, n (n − 1) / 2
 float64 per matcher and protocol (2,240 images: 20 MB each, 480 MB at most for six matchers and both
 protocols), and every worker holds the first ages' scores its chains start from (240 MB per distinct first
-age), whatever the number of ages or sensors.
+age), whatever the number of ages or sensors; the chains also hold the previous age's templates (about 30 kB
+per image for the six built-ins), and a cross-correlation comparison (``cr``, ``qsw``, Masek) works in up to
+≈ 0.6 GB while it compares a band of rows (:func:`~forensics.impact.spectral.shift_counts`).
 
 Resuming.  With a checkpoint folder (:class:`~forensics._shared.parallel.Checkpoint`), every finished work item
 — a (sensor, age), or with reuse a sensor's chain of later ages — writes its results (and at the first age the
@@ -68,7 +74,7 @@ from forensics._shared.parallel import Checkpoint, Executor, in_process, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
 from forensics.impact.matchers import Matcher, compare_all, template_failure
-from forensics.impact.reuse import ScoredPairs, best_base, fill_pairs, fill_upper, template_digest
+from forensics.impact.reuse import ScoredPairs, best_base, encode_reusing, fill_pairs, fill_upper, template_digest
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
 from forensics.sensor.presets import PRESETS, preset
@@ -253,6 +259,9 @@ class ImpactResult:
     #: those of a pair already scored (:mod:`forensics.impact.reuse`), over the computed (sensor, age) tasks.
     computed_pairs: int = 0
     copied_pairs: int = 0
+    #: Templates taken from the sensor's previous computed age because their band (texture, mask and
+    #: segmentation) was byte-identical (:func:`~forensics.impact.reuse.encode_reusing`): encodings skipped.
+    reused_templates: int = 0
     #: Segmentation method of each matcher that segments (``matcher.segmenter.method``), None for the others.
     segmentations: dict[str, str | None] = field(default_factory=dict)
 
@@ -280,7 +289,7 @@ class ImpactResult:
                 "trends": [t.to_dict() for t in self.trends], "spreads": [s.to_dict() for s in self.spreads],
                 "elapsed_s": self.elapsed_s, "resumed_units": self.resumed_units, "reused_units": self.reused_units,
                 "computed_pairs": self.computed_pairs, "copied_pairs": self.copied_pairs,
-                "segmentations": dict(self.segmentations), "forensics_version": __version__}
+                "reused_templates": self.reused_templates, "segmentations": dict(self.segmentations), "forensics_version": __version__}
 
 
 def _classes(source: Dataset) -> tuple[np.ndarray, list[str]]:
@@ -376,6 +385,14 @@ def _stream_root(rng: RngLike) -> int | np.random.SeedSequence:
 
 
 @dataclass(frozen=True)
+class _Encoded:
+    """The templates of one (sensor, age) and the digests of their bands, per matcher name, one per image."""
+
+    templates: dict[str, list[Any]]
+    bands: dict[str, list[bytes | None]]
+
+
+@dataclass(frozen=True)
 class _ImpactJob:
     """What every (sensor, age) task needs: shipped once per worker (the executor's ``shared``), never per task."""
 
@@ -400,6 +417,9 @@ class _ImpactJob:
     #: its chain starts from (sensor index → matcher name → :class:`~forensics.impact.reuse.ScoredPairs`).
     chains: dict[int, list[int]] | None = None
     starts: dict[int, dict[str, list[ScoredPairs]]] | None = None
+    #: With reuse: each chained sensor's first-age templates and band digests (matcher name → one per image),
+    #: from which its chain's first age reuses the templates of unchanged bands.
+    firsts: dict[int, _Encoded] | None = None
 
 
 def _impact_task(job: _ImpactJob, item: tuple[int, int]) -> dict[str, Any]:
@@ -408,13 +428,15 @@ def _impact_task(job: _ImpactJob, item: tuple[int, int]) -> dict[str, Any]:
     Returns ``{"units": [UnitResult, …], "enrol": templates or None, "bases": scores or None, "computed": n,
     "copied": n}``; the templates are kept only at age 0 and only when a later task needs them as its enrolment
     gallery, the scores (:class:`~forensics.impact.reuse.ScoredPairs` per matcher) only with ``job.reuse``, as
-    the start of the sensors' chains (:func:`_chain_task`).
+    the start of the sensors' chains (:func:`_chain_task`), and so are the templates with their band digests
+    (``"first"``, an :class:`_Encoded`).
     """
     s_index, a_index = item
     pairs = _pairs(job.labels, job.impostors, job.root)
-    units, templates, bases, computed, copied = _score_cell(job, s_index, a_index, pairs, {})
-    return {"units": units, "enrol": templates if job.ages[a_index] == 0.0 and job.keep_enrol else None,
-            "bases": bases if job.chains else None, "computed": computed, "copied": copied}
+    units, encoded, bases, computed, copied, _ = _score_cell(job, s_index, a_index, pairs, {}, None)
+    return {"units": units, "enrol": encoded.templates if job.ages[a_index] == 0.0 and job.keep_enrol else None,
+            "bases": bases if job.chains else None, "first": encoded if job.chains else None,
+            "computed": computed, "copied": copied}
 
 
 def _chain_task(job: _ImpactJob, s_index: int) -> dict[str, Any]:
@@ -425,22 +447,27 @@ def _chain_task(job: _ImpactJob, s_index: int) -> dict[str, Any]:
     from the scores of the sensor's first age (``job.starts``, computed first by :func:`_impact_task`).  Only
     the previous age's scores are held, so memory does not grow with the number of ages.
 
-    Returns ``{"cells": [[age index, [UnitResult, …]], …], "computed": n, "copied": n}``.
+    The templates are reused the same way: each age starts from the previous one's (:class:`_Encoded`; the
+    first from ``job.firsts``), and a template whose band is unchanged is not encoded again.
+
+    Returns ``{"cells": [[age index, [UnitResult, …]], …], "computed": n, "copied": n, "templates_reused": n}``.
     """
     pairs = _pairs(job.labels, job.impostors, job.root)
     bases = (job.starts or {}).get(s_index, {})
-    cells, computed, copied = [], 0, 0
+    before = (job.firsts or {}).get(s_index)
+    cells, computed, copied, reused = [], 0, 0, 0
     for a_index in (job.chains or {}).get(s_index, []):
-        units, _, bases, done, same = _score_cell(job, s_index, a_index, pairs, bases)
+        units, before, bases, done, same, kept = _score_cell(job, s_index, a_index, pairs, bases, before)
         cells.append([a_index, units])
-        computed, copied = computed + done, copied + same
-    return {"cells": cells, "computed": computed, "copied": copied}
+        computed, copied, reused = computed + done, copied + same, reused + kept
+    return {"cells": cells, "computed": computed, "copied": copied, "templates_reused": reused}
 
 
 def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.ndarray, np.ndarray, bool],
-                bases: dict[str, list[ScoredPairs]]) -> tuple[list[UnitResult], dict[str, list[Any]],
-                                                           dict[str, list[ScoredPairs]], int, int]:
-    """Units of one (sensor, age), its templates, its scores (with ``job.reuse``) and the pairs computed / copied.
+                bases: dict[str, list[ScoredPairs]], before: _Encoded | None
+                ) -> tuple[list[UnitResult], _Encoded, dict[str, list[ScoredPairs]], int, int, int]:
+    """Units of one (sensor, age), its templates, its scores (with ``job.reuse``), the pairs computed / copied and
+    the templates reused from ``before`` (:func:`_aged_templates`).
 
     With ``job.reuse`` every (matcher, protocol) starts from the stored scores (``bases``: the previous age's of
     this sensor, and for ``enrol-0`` this age's ``same-age`` scores) that leave the fewest pairs to compute, and
@@ -448,7 +475,8 @@ def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.nda
     """
     i, j, sampled = pairs
     spec, age = job.sensors[s_index], job.ages[a_index]
-    templates = _aged_templates(job, s_index, a_index)
+    encoded, reused = _aged_templates(job, s_index, a_index, before)
+    templates = encoded.templates
     enrol = templates if age == 0.0 else (job.enrol or {}).get(s_index)
     units, made_all, computed = [], {}, 0
     for matcher in job.matchers:
@@ -485,7 +513,7 @@ def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.nda
                                     int((~keep).sum())))
         made_all[matcher.name] = made
     total = i.size * len(job.matchers) * len(job.protocols)
-    return units, templates, made_all, computed, total - computed
+    return units, encoded, made_all, computed, total - computed, reused
 
 
 def _reused_scores(matcher: Matcher, gallery: Sequence[Any], probe: Sequence[Any],
@@ -544,13 +572,27 @@ def _aged_images(job: _ImpactJob, s_index: int, a_index: int) -> Iterator[np.nda
         yield aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0]
 
 
-def _aged_templates(job: _ImpactJob, s_index: int, a_index: int) -> dict[str, list[Any]]:
-    """Every aged image (:func:`_aged_images`) encoded by every matcher."""
+def _aged_templates(job: _ImpactJob, s_index: int, a_index: int, before: _Encoded | None
+                    ) -> tuple[_Encoded, int]:
+    """Every aged image (:func:`_aged_images`) encoded by every matcher, and how many templates were reused.
+
+    With ``job.reuse`` a built-in matcher's template is ``before``'s (the sensor's previous computed age) where
+    the image's band is byte-identical to that age's (:func:`~forensics.impact.reuse.encode_reusing`).
+    """
     templates: dict[str, list[Any]] = {m.name: [] for m in job.matchers}
-    for aged in _aged_images(job, s_index, a_index):
+    bands: dict[str, list[bytes | None]] = {m.name: [] for m in job.matchers}
+    reused = 0
+    for k, aged in enumerate(_aged_images(job, s_index, a_index)):
         for matcher in job.matchers:
-            templates[matcher.name].append(matcher.encode(aged))
-    return templates
+            if job.reuse:
+                prior = (before.bands[matcher.name][k], before.templates[matcher.name][k]) if before else None
+                band, template, same = encode_reusing(matcher, aged, prior)
+            else:
+                band, template, same = None, matcher.encode(aged), False
+            templates[matcher.name].append(template)
+            bands[matcher.name].append(band)
+            reused += same
+    return _Encoded(templates, bands), reused
 
 
 def _digest_task(job: _ImpactJob, item: tuple[int, int]) -> bytes:
@@ -709,7 +751,8 @@ def run_impact(
                           sampled, [s.name for s in sensors], ages, names, list(protocols), int(n_boot),
                           float(level), seed_record(rng), units, resumed_units=counts["resumed"],
                           reused_units=counts["reused"], computed_pairs=counts["computed"],
-                          copied_pairs=counts["copied"], segmentations=segmentations)
+                          copied_pairs=counts["copied"], reused_templates=counts["templates"],
+                          segmentations=segmentations)
     result.trends = trends(result)
     result.spreads = spreads(result)
     result.elapsed_s = time.perf_counter() - started
@@ -741,7 +784,7 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
 
     The counts: ``resumed`` units read from ``store``, ``reused`` units copied from a (sensor, age) with the same
     aged images, ``computed`` and ``copied`` comparisons (pairs scored, pairs whose score was copied from
-    byte-identical templates).
+    byte-identical templates), ``templates`` reused from the previous age of a chain.
 
     With ``job.reuse`` the aged images of every task are digested first (:func:`_digest_task`, cheap: ageing
     only), and of the tasks whose probe images — and, for ``enrol-0``, whose sensor's age-0 images — have the
@@ -773,7 +816,7 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
 
     bar = _OneBar(progress, sum(len(t) for t in stages), "impact: sensor × age")
     found: dict[tuple[int, int], list[UnitResult]] = {}
-    counts = dict.fromkeys(("resumed", "reused", "computed", "copied"), 0)
+    counts = dict.fromkeys(("resumed", "reused", "computed", "copied", "templates"), 0)
     for items in stages:
         if not items:
             continue
@@ -782,7 +825,7 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
         task = _chain_task if isinstance(items[0], int) else _impact_task
         outputs = ex.map(task, items, shared=job, progress=bar, desc="impact: sensor × age",
                          checkpoint=store, keys=keys)
-        enrol_of, bases_of = {}, {}
+        enrol_of, bases_of, firsts_of = {}, {}, {}
         for item, k, out in zip(items, keys, outputs):
             cells = out["cells"] if "cells" in out else [[item[1], out["units"]]]
             for a_index, units in cells:
@@ -790,15 +833,21 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
                 counts["resumed"] += len(units) if k in done else 0
             counts["computed"] += out.get("computed", 0)   # absent from items of earlier versions' checkpoints
             counts["copied"] += out.get("copied", 0)
+            counts["templates"] += out.get("templates_reused", 0)
             if out.get("enrol") is not None:
                 enrol_of[item] = out["enrol"]
             if out.get("bases") is not None:
                 bases_of[item] = out["bases"]
+            if out.get("first") is not None:
+                firsts_of[item] = out["first"]
         if enrol_of:
             job = dataclasses.replace(job, enrol={s: enrol_of[rep[s, lead]] for s in range(len(job.sensors))})
         if bases_of:
             job = dataclasses.replace(job, starts={s: bases_of[rep[s, lead]] for s in job.chains or {}
                                                    if rep[s, lead] in bases_of})
+        if firsts_of:
+            job = dataclasses.replace(job, firsts={s: firsts_of[rep[s, lead]] for s in job.chains or {}
+                                                   if rep[s, lead] in firsts_of})
     bar.close()
     for task in everything:
         if rep[task] != task:

@@ -85,6 +85,10 @@ class MasekMatcher(IrisCodeMatcher):
         r, a = t.shape
         return IrisCode.from_bits(bits.reshape(a, 2 * r), vmask.reshape(a, 2 * r), segmentation)
 
+    def mask_groups(self) -> np.ndarray:
+        """A column's bits (Re and Im of each row's sample) share the mask of their sample."""
+        return np.arange(2 * self.radial) // 2
+
     def encode(self, image: np.ndarray) -> IrisCode:
         """Segment (cached), normalise and encode an eye image."""
         texture, mask, seg = self.segmenter.unwrap(image, self.radial, self.angular)

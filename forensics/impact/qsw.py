@@ -143,6 +143,10 @@ class QswMatcher(IrisCodeMatcher):
         vmask = np.broadcast_to(valid[None], rising.shape).transpose(2, 0, 1).reshape(sig.shape[1], -1)
         return IrisCode.from_bits(bits, vmask, segmentation)
 
+    def mask_groups(self) -> np.ndarray:
+        """A column's bits (scales × signals) share the mask of their signal."""
+        return np.tile(np.arange(self.signals), len(self.scales))
+
     def encode(self, image: np.ndarray) -> IrisCode:
         """Segment (cached), normalise and encode an eye image."""
         texture, mask, seg = self.segmenter.unwrap(image, self.radial, self.angular)

@@ -18,6 +18,14 @@ every pair involving it is computed.
 :func:`best_base` picks the stored scores that leave the fewest pairs to compute; :func:`fill_upper` and
 :func:`fill_pairs` compute only those pairs (the others copied) and return every score; :func:`upper_blocks`
 is :func:`fill_upper`'s plan of ``compare_all`` calls (counted by the full-scale benchmark).
+
+**Templates too** (:func:`encode_reusing`): a built-in matcher's template is ``encode_texture`` of its rubber-sheet
+band — the texture, usability mask and segmentation :meth:`~forensics.impact.segment.Segmenter.unwrap` returns —
+and ``encode_texture`` is a deterministic function of those three alone (no random draw, no state).  So when an
+aged image's band is byte-identical to the band of the same source image at the sensor's previous computed age
+(the digests agree), the template *is* that age's template and its encoding is skipped.  The segmentation and the
+unwrapping are still computed (a defect anywhere can move the segmentation's whole-image thresholds, so nothing
+short of computing it proves it unchanged); what is saved is the feature extraction.
 """
 from __future__ import annotations
 
@@ -30,10 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from forensics.impact.matchers import compare_all
+from forensics._shared.plugins import load_class
+from forensics.impact.matchers import BUILTIN_MATCHERS, compare_all
 
-__all__ = ["ScoredPairs", "best_base", "fill_pairs", "fill_upper", "template_digest", "unchanged", "upper_blocks",
-           "upper_entries_computed"]
+__all__ = ["ScoredPairs", "band_encoder", "best_base", "encode_reusing", "fill_pairs", "fill_upper",
+           "template_digest", "unchanged", "upper_blocks", "upper_entries_computed"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +106,34 @@ def _feed(digest: Any, value: Any) -> bool:
         digest.update(f"{len(state)}(".encode())
         return all(_feed(digest, k) and _feed(digest, state[k]) for k in sorted(state))
     return False
+
+
+def band_encoder(matcher: Any) -> bool:
+    """Whether ``matcher`` is a built-in whose ``encode(image)`` is ``encode_texture(*segmenter.unwrap(image,
+    radial, angular))`` with a deterministic ``encode_texture`` (exactly a built-in class: a subclass may
+    change either)."""
+    name = getattr(matcher, "name", None)
+    builtin = BUILTIN_MATCHERS.get(name) if isinstance(name, str) else None
+    if builtin is None:
+        return False
+    return type(matcher) is (load_class(builtin, "matcher") if isinstance(builtin, str) else builtin)
+
+
+def encode_reusing(matcher: Any, image: np.ndarray, before: tuple[bytes | None, Any] | None
+                   ) -> tuple[bytes | None, Any, bool]:
+    """``(band digest, template, reused)`` of ``image``: ``before``'s template when its band digest is this
+    image's (see the module's note), else a new encoding.
+
+    ``before`` is ``(band digest, template)`` of the same source image at the previous computed age (None: none).
+    A matcher that is not a :func:`band_encoder` encodes the image as usual and has no band digest.
+    """
+    if not band_encoder(matcher):
+        return None, matcher.encode(image), False
+    band = matcher.segmenter.unwrap(image, matcher.radial, matcher.angular)
+    key = template_digest(band)
+    if key is not None and before is not None and before[0] == key:
+        return key, before[1], True
+    return key, matcher.encode_texture(*band), False
 
 
 def unchanged(now: Sequence[bytes | None], before: Sequence[bytes | None]) -> np.ndarray:

@@ -307,3 +307,18 @@ def test_coarse_to_fine_circle_search_finds_the_exhaustive_optimum(offset):
     full = polar_fit(smooth, start, LIMBUS_ARCS, coarse=0)
     assert fast == full
     assert circle_error(fast[0], IRIS) < 1.5
+
+
+@pytest.mark.parametrize("size", [3, 5])
+def test_the_square_growth_of_masks_is_the_binary_dilation(size):
+    # The rubber sheet grows reflections (5 × 5) and occlusions (3 × 3) by running maxima instead of a binary
+    # dilation: the same pixels, edges included (nothing beyond them), on sparse and dense random masks.
+    from forensics.impact.segment.normalise import _grown
+
+    rng = np.random.default_rng(size)
+    for density in (0.002, 0.05, 0.5):
+        mask = rng.random((61, 83)) < density
+        mask[0, 5] = mask[-1, -1] = True                       # at the edges
+        for m in (mask, np.flip(mask, 0)):                      # a flipped (negative-stride) view too
+            want = ndimage.binary_dilation(m, structure=np.ones((size, size), bool), border_value=0)
+            assert np.array_equal(_grown(m, size), want)

@@ -1,0 +1,98 @@
+"""Reuse of templates whose rubber-sheet band did not change (:func:`forensics.impact.reuse.encode_reusing`).
+
+A built-in matcher's template is ``encode_texture`` of the band (texture, usability mask, segmentation) that
+the shared :class:`~forensics.impact.segment.Segmenter` unwraps; a template is reused exactly when that band is
+byte-identical, and then equals a fresh encoding.  On real eyes (where ``../shared`` has them) the experiment
+gives the same result, number for number, with every reuse and with none.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from forensics.impact.experiment import parse_sensors, run_impact
+from forensics.impact.masek import MasekMatcher
+from forensics.impact.matchers import ExternalMatcher, load_matchers
+from forensics.impact.reuse import band_encoder, encode_reusing, template_digest
+from forensics.io.dataset import open_dataset
+
+ALL = ["masek", "ko", "qsw", "dct", "cr", "cb"]
+IITD = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "iitd-iris-001-040"
+
+
+class Subclass(MasekMatcher):
+    """A user's subclass: it could change ``encode`` or ``encode_texture``, so it is never reused."""
+
+
+def test_only_the_exact_built_in_classes_reuse_templates():
+    assert all(band_encoder(m) for m in load_matchers(ALL))
+    assert not band_encoder(Subclass())
+    assert not band_encoder(ExternalMatcher("true", name="cmd:true"))
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_a_template_is_reused_exactly_when_its_band_is_unchanged(captures, name):
+    (matcher,) = load_matchers([name])
+    image = captures[0, 0]
+    key, template, reused = encode_reusing(matcher, image, None)
+    assert not reused and key is not None
+    assert template_digest(template) == template_digest(matcher.encode(image))
+    # The same pixels again: the band's digest agrees and the stored template is handed back.
+    again = encode_reusing(matcher, image.copy(), (key, template))
+    assert again[0] == key and again[1] is template and again[2]
+    # A pixel of the iris changed: the band changes, the template is encoded anew and equals a fresh encoding.
+    seg = matcher.segmenter.segment(image)
+    row, col = int(round(seg.iris[1])), int(round(seg.iris[0] + (seg.pupil[2] + seg.iris[2]) / 2))   # mid-iris
+    spot = image.copy()
+    spot[row - 1:row + 2, col - 1:col + 2] = 255 - spot[row - 1:row + 2, col - 1:col + 2]
+    changed = encode_reusing(matcher, spot, (key, template))
+    assert changed[0] != key and not changed[2]
+    assert template_digest(changed[1]) == template_digest(matcher.encode(spot))
+    # A stored digest that does not match is never trusted, whatever template is offered with it.
+    other = encode_reusing(matcher, image, (b"not this band", "a stale template"))
+    assert not other[2] and template_digest(other[1]) == template_digest(template)
+
+
+def test_a_subclass_encodes_every_image(captures):
+    matcher = Subclass()
+    key, template, reused = encode_reusing(matcher, captures[0, 0], (b"x", "stale"))
+    assert key is None and not reused and template_digest(template) == template_digest(matcher.encode(captures[0, 0]))
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_real_eyes_give_the_same_result_with_every_reuse_and_with_none(tmp_path):
+    # Sensor A over the paper's 13 ages on 8 real eyes (4 classes × 2): its 4 distinct aged-image sets are
+    # computed in a chain whose later ages reuse the templates of unchanged bands and the scores of unchanged
+    # templates; without reuse all 13 ages are computed from scratch.  All six algorithms, both protocols.
+    if not (IITD / "manifest.csv").is_file():
+        pytest.skip(f"the IITD iris images are not at {IITD} (research-use data kept outside the repository)")
+    by_class: dict[str, list] = {}
+    for f in open_dataset(IITD).frames:
+        by_class.setdefault(f.subject, []).append(f)
+    frames = [f for name in sorted(by_class)[30:34] for f in by_class[name][:2]]
+    with open(tmp_path / "manifest.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["file", "subject"])
+        for f in frames:
+            (tmp_path / f.file).parent.mkdir(parents=True, exist_ok=True)
+            (tmp_path / f.file).symlink_to(Path(f.path).resolve())      # linked, never copied
+            writer.writerow([f.file, f.subject])
+    source = open_dataset(tmp_path, allow_outside=True)
+    sensors = parse_sensors("A", source.shape()[:2], 8)
+    ages = [float(a) for a in range(0, 97, 8)]
+    runs = {reuse: run_impact(source, sensors, ages, load_matchers(ALL), rng=2, n_boot=50, reuse=reuse)
+            for reuse in (True, False)}
+    fast, slow = runs[True], runs[False]
+    assert fast.reused_templates > 0 and slow.reused_templates == 0 and fast.reused_units > 0
+    a, b = fast.to_dict(), slow.to_dict()
+    for d in (a, b):
+        for how in ("elapsed_s", "resumed_units", "reused_units", "computed_pairs", "copied_pairs",
+                    "reused_templates"):
+            d.pop(how)
+    assert a == b
+    for ua, ub in zip(fast.units, slow.units):
+        assert np.array_equal(ua.eer.replicates, ub.eer.replicates, equal_nan=True) and ua.histogram == ub.histogram
