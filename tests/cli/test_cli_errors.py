@@ -165,8 +165,11 @@ def test_a_signal_while_starting_is_one_line_not_a_traceback(tmp_path, module, s
     """Found by the adversarial replay: Ctrl-C in the first second of a command (importing the library, building
     the parser) printed the traceback of whatever module was loading and died of SIGINT; SIGTERM there ended
     it without a word."""
+    # the command as a user's shell starts it: Ctrl-C not ignored (a test run started in the background of a
+    # non-interactive shell hands its children SIGINT ignored, and Python then installs no handler for it)
     run = subprocess.run([sys.executable, "-c", _STOP_WHILE_IMPORTING, module, str(int(signum)), "info", str(tmp_path)],
-                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert run.returncode == code and run.stderr == line + "\n" and run.stdout == "", run.stderr
 
 
