@@ -657,7 +657,7 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
         groups = [g for g in groups if g.index not in dropped]
         for g in groups:
             g.index = renumber[g.index]
-    full_scale = infer_full_scale(np.dtype(dtype), max(0.0, float(hi.max())))
+    full_scale = data_full_scale(ds, np.dtype(dtype), max(0.0, float(hi.max())))
     border = SCENE_SIZE // 2 if border is None else int(border)
     interior = np.zeros(shp, bool)
     interior[border:shp[0] - border, border:shp[1] - border] = True
@@ -676,6 +676,21 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
 
 #: A saturation atom: at least this share of one condition's interior pixels read the same value in every frame.
 SATURATION_SHARE = 0.01
+
+
+def data_full_scale(ds: Dataset, dtype: np.dtype, maximum: float) -> float:
+    """The converter's full scale: for integer FITS frames their container's (a CCD's 16-bit ADU are written as
+    BITPIX 16 with BZERO 32768), else inferred from the largest value (:func:`infer_full_scale`: 12- and 14-bit
+    data in 16-bit PNG or TIFF files).
+
+    Why: a 16-bit CCD's dark series whose hottest pixel stays below 16,383 ADU was taken for 14-bit data, and a
+    region or tile of the frames could get another full scale than its neighbour.  A converter that clips below
+    its container is still found from the data (:func:`saturation_level`)."""
+    from forensics.io.fits import is_fits
+
+    if dtype.kind in "ui" and dtype != np.uint8 and ds.frames and all(is_fits(f.path) for f in ds.frames):
+        return float(np.iinfo(dtype).max)
+    return infer_full_scale(dtype, maximum)
 
 
 def saturation_level(lo: np.ndarray, hi: np.ndarray, interior: np.ndarray, full_scale: float) -> float | None:

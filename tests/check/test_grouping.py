@@ -62,3 +62,17 @@ def test_a_pattern_size_is_profiled_against_the_other_patterns():
 
     assert sigma([np.ones_like(levels)]) == pytest.approx(float(k.std()), rel=0.07)
     assert sigma([]) > 1.1 * float(k.std())  # alone, the offsets' share inflates it
+
+
+def test_a_16_bit_fits_dark_series_keeps_its_full_scale(tmp_path):
+    """Darks of a 16-bit CCD (BITPIX 16, BZERO 32768) whose hottest pixel stays far below 16,383 ADU: the full
+    scale is the container's 65,535, in the whole frame and in a region (it was inferred as 14-bit before)."""
+    from forensics.check.measurements import load_measurements
+    from forensics.fixtures.darkseries import DarkSeriesDesign, make_dark_series
+
+    design = DarkSeriesDesign(shape=(40, 48), exposures=(10.0, 30.0), n_bias=3, n_repeat_dark=2, hot_max=5.0,
+                              setpoints=(-10.0,))
+    make_dark_series(tmp_path, 2, design)
+    whole = load_measurements(tmp_path)
+    assert float(whole.hi.max()) < 16383 and whole.full_scale == 65535.0
+    assert load_measurements(tmp_path, region=(8, 8, 24, 24)).full_scale == 65535.0
