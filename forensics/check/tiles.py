@@ -12,8 +12,10 @@ per worker — and the tiles' results are combined:
   ``θ̂ = (Σ Pₜ)⁻¹ Σ Pₜ θₜ`` with ``Pₜ = Cov(θₜ)⁻¹`` and covariance ``(Σ Pₜ)⁻¹`` — the normal equations summed
   over the tiles (the "aggregated estimating equation" estimator of Lin & Xi, Statistics and Its Interface 4,
   2011; asymptotically as efficient as the joint fit when every tile holds many pixels).
-* **Are the parameters the same everywhere?**  ``Q = Σ (θₜ − θ̂)ᵀ Pₜ (θₜ − θ̂)`` is χ² with
-  ``Σ kₜ − k`` degrees of freedom if they are (Cochran's heterogeneity test, per parameter and jointly).  A
+* **Are the parameters the same everywhere?**  ``Q = Σ (θₜ − θ̂)ᵀ Pₜ (θₜ − θ̂) / φₜ`` is χ² with
+  ``Σ kₜ − k`` degrees of freedom if they are (Cochran's heterogeneity test, per parameter and jointly; φₜ ≥ 1
+  the tile's own misfit, :func:`tile_dispersion`, so that a model that misfits everywhere alike is not read as a
+  parameter that differs).  A
   dark rate or a gain that changes across the sensor — amplifier glow in a corner, a gain gradient — fails it:
   a spatial effect the model lacks, which one small region cannot show.
 * **Errors** pool the tiles' squared held-out errors by their numbers of held-out means; **goodness of fit**
@@ -143,7 +145,7 @@ class TiledParam:
 
     estimate: ParamEstimate  #: the combined value, its standard error and covariances
     tiles: int  #: tiles whose estimate entered (identifiable, settled, not on a bound)
-    q: float | None  #: Cochran's Q of this parameter alone (Σ (θₜ − θ̂)² / seₜ²)
+    q: float | None  #: Cochran's Q of this parameter alone (Σ (θₜ − θ̂)² / (φₜ·seₜ²), φₜ: :func:`tile_dispersion`)
     df: int
     p_same: float | None  #: P(Q this large | the parameter is the same in every tile)
     spread: float | None  #: the tiles' values' standard deviation beyond their own errors (DerSimonian–Laird τ)
@@ -280,7 +282,7 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
         labels, values, cov = _tile_covariance(t.params)
         if not labels:
             continue
-        parts.append((labels, values, cov, _precision(cov)))
+        parts.append((labels, values, cov, _precision(cov), tile_dispersion(t)))
         for p in t.params:
             if p.label in labels and p.label not in meta:
                 meta[p.label] = p
@@ -291,7 +293,7 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
     index = {label: i for i, label in enumerate(order)}
     info = np.zeros((k, k))
     rhs = np.zeros(k)
-    for labels, values, _, prec in parts:
+    for labels, values, _, prec, _ in parts:
         idx = [index[label] for label in labels]
         info[np.ix_(idx, idx)] += prec
         rhs[idx] += prec @ values
@@ -301,13 +303,13 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
     per_q = np.zeros(k)
     per_n = np.zeros(k, int)
     per_vals: list[list[tuple[float, float]]] = [[] for _ in range(k)]
-    for labels, values, tcov, prec in parts:
+    for labels, values, tcov, prec, phi in parts:
         idx = [index[label] for label in labels]
         d = values - theta[idx]
-        q_joint += float(d @ prec @ d)
+        q_joint += float(d @ prec @ d) / phi
         n_joint += len(idx)
         for j, i in enumerate(idx):
-            se2 = float(tcov[j, j])
+            se2 = float(tcov[j, j]) * phi
             per_q[i] += d[j] ** 2 / se2
             per_n[i] += 1
             per_vals[i].append((float(values[j]), se2))
@@ -324,6 +326,27 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
                               _between_tile_spread(per_vals[i])))
     p_joint = float(stats.chi2.sf(q_joint, joint_df)) if joint_df >= 1 else None
     return out, (q_joint if joint_df >= 1 else None), max(joint_df, 0), p_joint
+
+
+def tile_dispersion(t: TileResult) -> float:
+    """A tile's dispersion φ = max(1, e²), e its held-out error pooled over the pixel classes (the root mean
+    square over its held-out means, in noise floors).
+
+    The heterogeneity tests scale each tile's covariance by it (quasi-likelihood; McCullagh & Nelder, Generalized
+    Linear Models, 1989, §9.2): a standard error from the information alone assumes the model holds, and where it
+    misfits (the SBIG tiles' errors 1.4–2.3) the tiles' values scatter by more than those errors although nothing
+    spatial may be missing.  The combined values and their standard errors are a whole-frame check's (unscaled).
+
+    Examples
+    --------
+    >>> t = TileResult(Tile((0, 0, 8, 8), (0, 0, 8, 8)), [], [], {"normal": 2.0, "partial": 1.0},
+    ...                {"normal": 3, "partial": 1}, None, {}, [], [], [])
+    >>> tile_dispersion(t)
+    3.25
+    """
+    pairs = [(e, t.held_out.get(name, 0)) for name, e in t.classes.items() if e is not None]
+    n = sum(m for _, m in pairs)
+    return max(1.0, sum(e * e * m for e, m in pairs) / n) if n else 1.0
 
 
 def _between_tile_spread(values: list[tuple[float, float]]) -> float | None:

@@ -175,3 +175,16 @@ def test_a_dead_corner_is_named_and_left_out(flat_rate, tmp_path):
     for p in dead.params:
         assert p.tiles == 5
         assert abs(p.estimate.value - whole[p.estimate.label].value) <= 2 * p.estimate.se, p.estimate.label
+
+
+def test_a_tile_that_misfits_weighs_less_in_the_heterogeneity_test_not_in_the_estimate():
+    """Two tiles 10 ± 1 and 14 ± 1: Q = 8 on 1 df.  Where both tiles' held-out errors are 2 (the model misfits
+    there, φ = 4), Q = 2 — the estimate and its standard error are unchanged."""
+    def tile(v, e):
+        return TileResult(Tile((0, 0, 8, 8), (0, 0, 8, 8)), [], [ParamEstimate("x", "a", v, 1.0)],
+                          {"normal": e}, {"normal": 100}, None, {}, [], [], [])
+
+    fit, _, _, _ = combine_params([tile(10.0, 1.0), tile(14.0, 1.0)])
+    misfit, _, _, _ = combine_params([tile(10.0, 2.0), tile(14.0, 2.0)])
+    assert fit[0].q == pytest.approx(8.0) and misfit[0].q == pytest.approx(2.0)
+    assert misfit[0].estimate.value == fit[0].estimate.value and misfit[0].estimate.se == fit[0].estimate.se
