@@ -4,6 +4,7 @@ never recomputes)."""
 from __future__ import annotations
 
 import math
+from math import sqrt
 from typing import Any
 
 import numpy as np
@@ -12,7 +13,7 @@ from forensics.check.classes import CHANNELS, CLASSES
 from forensics.check.diagnosis import FLAG_DBIC
 from forensics.check.result import CheckResult
 from forensics.check.select import SelectionResult
-from forensics.check.tiles import TiledCheck
+from forensics.check.tiles import TiledCheck, tile_dispersion
 from forensics.report.html import Report, new_figure
 from forensics.sensor.catalogue import PARTIAL, STUCK
 
@@ -415,12 +416,12 @@ def _tile_maps(rep: Report, tiled: TiledCheck) -> None:
 
         def z(t, label=label, centre=centre):
             own = next((q for q in t.params if q.label == label and q.se and q.converged and not q.bound), None)
-            return None if own is None or t.not_converged else (own.value - centre) / own.se
+            return None if own is None or t.not_converged else (own.value - centre) / (own.se * sqrt(tile_dispersion(t)))
         ye, xe, grid = _tile_grid_values(tiled, z)
         im = ax.pcolormesh(xe, ye, grid, cmap="RdBu_r", vmin=-4, vmax=4)
         ax.set_ylim(ye[-1], ye[0])
-        same = "—" if p.p_same is None else f"{p.p_same:.2g}"
-        ax.set_title(f"{label}\n(tile − combined) / SE; p same {same}", fontsize=8)
+        same = "—" if p.p_same is None else "< 1e-300" if p.p_same < 1e-300 else f"{p.p_same:.2g}"
+        ax.set_title(f"{label}\n(tile − combined) / (SE·√φ); p same {same}", fontsize=8)
         fig.colorbar(im, ax=ax, shrink=0.8)
     ax = axes[len(params)]
 
@@ -435,5 +436,5 @@ def _tile_maps(rep: Report, tiled: TiledCheck) -> None:
     for extra in axes[panels:]:
         extra.set_visible(False)
     rep.figure(fig, "tile_maps", "Each tile's own estimate of every global parameter, in its own standard errors "
-               "from the combined value (blue below, red above; a smooth gradient or a hot corner is a spatial "
+               "(scaled by its misfit φ, as the test) from the combined value (blue below, red above; a smooth gradient or a hot corner is a spatial "
                "effect the model lacks), and each tile's held-out pixel error (the worst class).")
