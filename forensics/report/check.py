@@ -415,7 +415,9 @@ def _tile_maps(rep: Report, tiled: TiledCheck) -> None:
 
         def z(t, label=label, centre=centre):
             own = next((q for q in t.params if q.label == label and q.se and q.converged and not q.bound), None)
-            return None if own is None or t.not_converged else (own.value - centre) / (own.se * math.sqrt(tile_dispersion(t)))
+            if own is None or t.not_converged:
+                return None
+            return (own.value - centre) / (own.se * math.sqrt(tile_dispersion(t)))
         ye, xe, grid = _tile_grid_values(tiled, z)
         im = ax.pcolormesh(xe, ye, grid, cmap="RdBu_r", vmin=-4, vmax=4)
         ax.set_ylim(ye[-1], ye[0])
