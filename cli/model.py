@@ -171,7 +171,10 @@ def _run_tiles(args: argparse.Namespace) -> int:
                              progress=progress_for(args), region=central_region(ds.shape(), args.tiles), executor=ex)
             given = {e.key for e in resolve_effects(args.add)}
             add += [k for k in _added(sel.result) if k not in given]
-        tiled = check_tiles(ds, add=add, size=args.tiles, rng=args.seed, progress=progress_for(args), executor=ex)
+        # the tiles' fits start from the central tile's fitted values (each still fits to convergence)
+        start = None if sel is None else {p.label: p.value for p in sel.result.params if p.converged}
+        tiled = check_tiles(ds, add=add, size=args.tiles, rng=args.seed, progress=progress_for(args), executor=ex,
+                            start=start)
         execution = ex.info()
     if args.report:
         path = tiles_report(tiled, sel, title=f"Model check (--tiles {args.tiles}): {args.data}").write(

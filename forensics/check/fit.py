@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -69,15 +69,17 @@ class FittedModel:
         return [e for e in self.effects if e.stage == Stage.NOISE]
 
 
-def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24) -> FittedModel:
+def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24,
+              start: Mapping[str, float] | None = None) -> FittedModel:
     """Fit ``effects`` to the evidence (the objects given are left unchanged).
 
     Pixel classes come from defect detection; when the model has fixed patterns on normal pixels, detection is
     repeated against the fitted model's prediction for defect-free pixels and the model refitted once — unless
     the first fit did not settle (detection against a model that is still moving finds defects everywhere).
+    ``start``: the global pixel parameters to start from (:func:`warm_start`; default the effects' own starts).
     """
     pixels = ev.pixels()
-    fitted = _fit_once(ev, pixels, effects, max_cycles)
+    fitted = _fit_once(ev, pixels, effects, max_cycles, start=start)
     if fitted.not_converged:
         return fitted
     device = fitted.device
@@ -86,7 +88,8 @@ def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24) -> 
     if covers_normal:
         catalogue = ev.redetect(device)
         if not same_catalogue(catalogue, pixels.catalogue):
-            fitted = _fit_once(ev, ev.pixels(catalogue), fitted.effects, max_cycles, start=fitted.effects)
+            fitted = _fit_once(ev, ev.pixels(catalogue), fitted.effects, max_cycles,
+                               start=fitted_values(fitted.effects))
     return fitted
 
 
@@ -108,23 +111,31 @@ def at_null(effect: Effect) -> Effect:
     return dataclasses.replace(effect, **start) if start else effect
 
 
-def warm_start(effects: Sequence[Effect], start: Sequence[Effect], indices: Sequence[int]) -> list[Effect]:
-    """``effects`` with the free parameters of ``effects[indices]`` taken from the same effect in ``start`` (a
-    previous fit of the same model); everything else — patterns, their spreads, the noise — starts as in a cold
-    fit.  Why: the refit after re-detection starts from the first fit's global parameters, which the new pixel
-    classes move little; from the nulls it spent as many cycles again finding them."""
-    by_key = {e.key: e for e in start}
+def warm_start(effects: Sequence[Effect], start: Mapping[str, float], indices: Sequence[int]) -> list[Effect]:
+    """``effects`` with the free parameters of ``effects[indices]`` set from ``start`` (``effect.name`` → value, e.g.
+    :func:`fitted_values` of a previous fit of the same model), each clipped to its bounds; everything else —
+    patterns, their spreads, the noise — starts as in a cold fit.  Why: the refit after re-detection starts from
+    the first fit's global parameters, which the new pixel classes move little (from the nulls it spent as many
+    cycles again finding them); a tile of a frame starts from the central tile's."""
     out = list(effects)
     for i in indices:
-        old = by_key.get(out[i].key)
-        if old is not None and type(old) is type(out[i]):
-            values = {n: getattr(old, n) for n in out[i].free_params()}
-            out[i] = dataclasses.replace(out[i], **values) if values else out[i]
+        values = {}
+        for n in out[i].free_params():
+            v = start.get(f"{out[i].key}.{n}")
+            if v is not None and np.isfinite(v):
+                lo, hi = out[i].bounds(n)
+                values[n] = float(min(max(v, lo), hi))
+        out[i] = dataclasses.replace(out[i], **values) if values else out[i]
     return out
 
 
+def fitted_values(effects: Sequence[Effect]) -> dict[str, float]:
+    """Every free parameter's value as ``effect.name`` → value (what :func:`warm_start` takes)."""
+    return {f"{e.key}.{n}": float(getattr(e, n)) for e in effects for n in e.free_params()}
+
+
 def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cycles: int,
-              start: Sequence[Effect] | None = None) -> FittedModel:
+              start: Mapping[str, float] | None = None) -> FittedModel:
     """One fit of every channel; ``start``: a previous fit of the same model whose global pixel parameters the
     pixel fit starts from (:func:`warm_start`)."""
     effects = [at_null(e) for e in SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects),

@@ -13,7 +13,7 @@ import dataclasses
 import math
 import pickle
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -103,9 +103,10 @@ def resolve_effects(add: Sequence[str | Effect]) -> list[Effect]:
     return [spec if isinstance(spec, Effect) else make_effect(spec) for spec in add]
 
 
-def run_check(ev: Evidence, effects: Sequence[Effect]) -> CheckResult:
-    """Fit ``effects`` to prepared evidence, score, and diagnose (``effects`` are left unchanged)."""
-    fitted = fit_model(ev, effects)
+def run_check(ev: Evidence, effects: Sequence[Effect], start: Mapping[str, float] | None = None) -> CheckResult:
+    """Fit ``effects`` to prepared evidence, score, and diagnose (``effects`` are left unchanged); ``start``:
+    global pixel parameters to start the fit from (``effect.name`` → value, :func:`~forensics.check.fit.warm_start`)."""
+    fitted = fit_model(ev, effects, start=start)
     px = fitted.pixels
     r2, floor = heldout_terms(ev, fitted)
     classes = class_errors(ev, fitted, r2, floor)

@@ -487,14 +487,15 @@ def _where(t: TileResult) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ running
-def check_tile(data: Dataset, item: tuple[Tile, list[Any], np.random.SeedSequence, int]) -> TileResult:
+def check_tile(data: Dataset, item: tuple[Tile, list[Any], np.random.SeedSequence, int, dict[str, float] | None]
+               ) -> TileResult:
     """One tile's check (a work item of :func:`check_tiles`: module-level, the dataset shared)."""
-    from forensics.check.pipeline import check
+    from forensics.check.pipeline import base_model, prepare, run_check
 
-    tile, add, seeds, n_sim = item
+    tile, add, seeds, n_sim, start = item
     try:
-        result = check(data, add=add, rng=np.random.default_rng(seeds), baseline=False, n_sim=n_sim,
-                       region=tile.region)
+        ev, extra = prepare(data, add, np.random.default_rng(seeds), n_sim, region=tile.region)
+        result = run_check(ev, [*base_model(ev.black_level), *extra], start=start)
     except InputError as exc:
         # a part of the frame the check cannot use (e.g. content-free or saturated there): the tile is named and
         # left out, the others still count
@@ -504,7 +505,7 @@ def check_tile(data: Dataset, item: tuple[Tile, list[Any], np.random.SeedSequenc
 
 def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int = 256, rng: RngLike = 0,
                 n_sim: int = 199, progress: Progress = no_progress,
-                executor: Executor | None = None) -> TiledCheck:
+                executor: Executor | None = None, start: dict[str, float] | None = None) -> TiledCheck:
     """Check the base model plus ``add`` on every tile of the frames and combine the tiles (module docstring).
 
     Parameters
@@ -521,6 +522,9 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
         ``SeedSequence(rng).spawn``, whatever the order the tiles run in.
     executor
         The execution layer: one tile per work item, the dataset shipped once per worker.
+    start
+        Global pixel parameters every tile's fit starts from (``effect.name`` → value, e.g. the central tile's
+        fit: ``{p.label: p.value for p in result.params}``); each tile still fits to convergence.
 
     Returns
     -------
@@ -544,6 +548,6 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
     tiles = tile_grid(shape, size)
     root = rng if isinstance(rng, np.random.SeedSequence) else np.random.SeedSequence(
         rng if isinstance(rng, (int, np.integer)) else np.random.default_rng(rng).integers(2**63))
-    items = [(t, list(add), s, n_sim) for t, s in zip(tiles, root.spawn(len(tiles)))]
+    items = [(t, list(add), s, n_sim, start) for t, s in zip(tiles, root.spawn(len(tiles)))]
     results = list(resolve(executor).map(check_tile, items, shared=ds, progress=progress, desc="tiles"))
     return combine(shape[:2], size, results)
