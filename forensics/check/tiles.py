@@ -523,8 +523,9 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
     executor
         The execution layer: one tile per work item, the dataset shipped once per worker.
     start
-        Global pixel parameters every tile's fit starts from (``effect.name`` → value, e.g. the central tile's
-        fit: ``{p.label: p.value for p in result.params}``); each tile still fits to convergence.
+        Global pixel parameters every tile's fit starts from (``effect.name`` → value, e.g. a fit of the central
+        region: ``{p.label: p.value for p in result.params}``); default: the central tile is checked first and the
+        others start from its values.  Each tile still fits to convergence.
 
     Returns
     -------
@@ -548,6 +549,33 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
     tiles = tile_grid(shape, size)
     root = rng if isinstance(rng, np.random.SeedSequence) else np.random.SeedSequence(
         rng if isinstance(rng, (int, np.integer)) else np.random.default_rng(rng).integers(2**63))
-    items = [(t, list(add), s, n_sim, start) for t, s in zip(tiles, root.spawn(len(tiles)))]
+    seeds = root.spawn(len(tiles))
+    first: TileResult | None = None
+    centre = central_tile(tiles, shape)
+    if start is None and len(tiles) > 1:
+        # the central tile first, in this process: every other tile's fit starts from its values (a tile from the
+        # nulls spends most of its cycles finding what every tile shares; each still fits to convergence)
+        first = check_tile(ds, (tiles[centre], list(add), seeds[centre], n_sim, None))
+        start = None if first.not_converged else {p.label: p.value for p in first.params if p.converged}
+    items = [(t, list(add), s, n_sim, start) for i, (t, s) in enumerate(zip(tiles, seeds))
+             if not (first is not None and i == centre)]
     results = list(resolve(executor).map(check_tile, items, shared=ds, progress=progress, desc="tiles"))
+    if first is not None:
+        results.insert(centre, first)
     return combine(shape[:2], size, results)
+
+
+def central_tile(tiles: Sequence[Tile], shape: Sequence[int]) -> int:
+    """The index of the tile whose core holds the frame's centre.
+
+    Examples
+    --------
+    >>> central_tile(tile_grid((60, 60), 20), (60, 60))
+    4
+    """
+    cy, cx = shape[0] / 2.0, shape[1] / 2.0
+    for i, t in enumerate(tiles):
+        top, left, h, w = t.core
+        if top <= cy < top + h and left <= cx < left + w:
+            return i
+    return len(tiles) // 2
