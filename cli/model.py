@@ -156,6 +156,7 @@ def _run_tiles(args: argparse.Namespace) -> int:
     from forensics._shared.errors import UsageError
     from forensics.check import check_auto, check_tiles, resolve_effects
     from forensics.check.measurements import central_region
+    from forensics.check.tiles import start_values
     from forensics.report.check import tiles_report
 
     if args.region is not None:
@@ -172,7 +173,7 @@ def _run_tiles(args: argparse.Namespace) -> int:
             given = {e.key for e in resolve_effects(args.add)}
             add += [k for k in _added(sel.result) if k not in given]
         # the tiles' fits start from the central tile's fitted values (each still fits to convergence)
-        start = None if sel is None else {p.label: p.value for p in sel.result.params if p.converged}
+        start = None if sel is None else start_values(sel.result.params)
         tiled = check_tiles(ds, add=add, size=args.tiles, rng=args.seed, progress=progress_for(args), executor=ex,
                             start=start)
         execution = ex.info()

@@ -304,8 +304,7 @@ def group_frames(ds: Dataset, epoch: np.ndarray, epoch_times: np.ndarray) -> lis
     groups = []
     for j, (k, idx) in enumerate(sorted(keys.items(), key=lambda kv: (kv[0][0], kv[1][0]))):
         measured = [ds.frames[i].temperature_c for i in idx]
-        temperature = (float(np.mean(measured)) if all(t is not None for t in measured) and len(idx) > 1
-                       else measured[0] if measured[0] is not None else k[3][1])
+        temperature = float(np.mean(measured)) if None not in measured else k[3][1]
         groups.append(Group(j, k[0], float(epoch_times[k[0]]), k[1], k[2], temperature, k[4], idx, k[5]))
     return groups
 

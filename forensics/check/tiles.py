@@ -126,6 +126,13 @@ class TileResult:
     warnings: list[str]
     #: the pixel-local random-effect patterns' sizes as the frames show them (those with a size)
     patterns: list[PatternEstimate] = field(default_factory=list)
+    #: why the tile could not be checked at all (its one-line input error), else empty
+    unchecked: str = ""
+
+    @property
+    def excluded(self) -> bool:
+        """Left out of every combination: not checked, or its fit did not settle."""
+        return bool(self.unchecked or self.not_converged)
 
     @classmethod
     def of(cls, tile: Tile, result: "CheckResult") -> "TileResult":
@@ -217,8 +224,8 @@ class TiledCheck:
 
     @property
     def failed(self) -> list[TileResult]:
-        """Tiles whose fit did not settle (left out of every combination)."""
-        return [t for t in self.tiles if t.not_converged]
+        """Tiles left out of every combination (not checked, or their fit did not settle)."""
+        return [t for t in self.tiles if t.excluded]
 
     def to_dict(self) -> dict[str, Any]:
         return {"shape": list(self.shape), "tile_size": self.size, "effects": self.effects,
@@ -230,7 +237,8 @@ class TiledCheck:
                            "error": t.classes, "held_out": t.held_out, "gof": t.gof,
                            "params": {p.label: {"value": p.value, "se": p.se} for p in t.params},
                            "flagged": [c.effect for c in t.candidates if c.flagged],
-                           "not_converged": t.not_converged} for t in self.tiles],
+                           "not_converged": t.not_converged, "unchecked": t.unchecked or None}
+                          for t in self.tiles],
                 "warnings": self.warnings}
 
 
@@ -277,7 +285,7 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
     meta: dict[str, ParamEstimate] = {}
     parts = []
     for t in tiles:
-        if t.not_converged:
+        if t.excluded:
             continue
         labels, values, cov = _tile_covariance(t.params)
         if not labels:
@@ -300,8 +308,6 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
     cov = _precision(info)  # the inverse of the summed information (same scaled pseudo-inverse)
     theta = cov @ rhs
     q_joint, n_joint = 0.0, 0
-    per_q = np.zeros(k)
-    per_n = np.zeros(k, int)
     per_vals: list[list[tuple[float, float]]] = [[] for _ in range(k)]
     for labels, values, tcov, prec, phi in parts:
         idx = [index[label] for label in labels]
@@ -309,10 +315,7 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
         q_joint += float(d @ prec @ d) / phi
         n_joint += len(idx)
         for j, i in enumerate(idx):
-            se2 = float(tcov[j, j]) * phi
-            per_q[i] += d[j] ** 2 / se2
-            per_n[i] += 1
-            per_vals[i].append((float(values[j]), se2))
+            per_vals[i].append((float(values[j]), float(tcov[j, j]) * phi))
     joint_df = n_joint - k
     out = []
     for i, label in enumerate(order):
@@ -320,10 +323,8 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
         se = float(np.sqrt(max(cov[i, i], 0.0)))
         covs = {order[j]: float(cov[i, j]) for j in range(k) if j != i}
         estimate = ParamEstimate(p0.effect, p0.name, float(theta[i]), se, p0.unit, cov=covs)
-        df = int(per_n[i] - 1)
-        q = float(per_q[i]) if df >= 1 else None
-        out.append(TiledParam(estimate, int(per_n[i]), q, df, None if q is None else float(stats.chi2.sf(q, df)),
-                              _between_tile_spread(per_vals[i])))
+        q, df, p_same, spread = scalar_heterogeneity(per_vals[i], float(theta[i]))
+        out.append(TiledParam(estimate, len(per_vals[i]), q, df, p_same, spread))
     p_joint = float(stats.chi2.sf(q_joint, joint_df)) if joint_df >= 1 else None
     return out, (q_joint if joint_df >= 1 else None), max(joint_df, 0), p_joint
 
@@ -349,17 +350,31 @@ def tile_dispersion(t: TileResult) -> float:
     return max(1.0, sum(e * e * m for e, m in pairs) / n) if n else 1.0
 
 
-def _between_tile_spread(values: list[tuple[float, float]]) -> float | None:
-    """The standard deviation of the tiles' true values beyond their own errors: DerSimonian & Laird's
-    moment estimate τ (Controlled Clinical Trials 7, 1986), 0 when the tiles agree within their errors."""
-    if len(values) < 2:
-        return None
+def scalar_heterogeneity(values: Sequence[tuple[float, float]], centre: float
+                         ) -> tuple[float | None, int, float | None, float | None]:
+    """(Cochran's Q, df, p, spread) of the tiles' values of one quantity, ``values`` as (value, variance) pairs
+    (variances already scaled by each tile's :func:`tile_dispersion`), about ``centre``.  The spread is the
+    tiles' standard deviation beyond their own errors: DerSimonian & Laird's moment estimate τ (Controlled
+    Clinical Trials 7, 1986), 0 when the tiles agree within their errors.
+
+    Examples
+    --------
+    >>> q, df, p, tau = scalar_heterogeneity([(10.0, 1.0), (12.0, 1.0)], 11.0)
+    >>> q, df, round(p, 3), round(tau, 3)
+    (2.0, 1, 0.157, 1.0)
+    """
+    df = len(values) - 1
+    if df < 1:
+        return None, max(df, 0), None, None
     v = np.array([a for a, _ in values])
     w = 1.0 / np.array([b for _, b in values])
+    q = float(np.sum(w * (v - centre) ** 2))
+    # τ from Q about the inverse-variance mean (the moment estimator's own centre)
     mean = float(np.sum(w * v) / np.sum(w))
-    q = float(np.sum(w * (v - mean) ** 2))
+    q_mean = float(np.sum(w * (v - mean) ** 2))
     c = float(np.sum(w) - np.sum(w * w) / np.sum(w))
-    return float(np.sqrt(max((q - (len(v) - 1)) / c, 0.0))) if c > 0 else None
+    tau = float(np.sqrt(max((q_mean - df) / c, 0.0))) if c > 0 else None
+    return q, df, float(stats.chi2.sf(q, df)), tau
 
 
 def combine_pattern_sizes(tiles: Sequence[TileResult]) -> list[TiledPattern]:
@@ -375,21 +390,21 @@ def combine_pattern_sizes(tiles: Sequence[TileResult]) -> list[TiledPattern]:
     >>> round(p.size, 4), round(p.size_se, 5), round(p.q, 1)
     (0.011, 0.00071, 2.0)
     """
-    found: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    found: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for t in tiles:
-        if t.not_converged:
+        if t.excluded:
             continue
+        phi = tile_dispersion(t)
         for p in t.patterns:
-            found.setdefault((p.effect, p.name), []).append((float(p.size), float(p.size_se) ** 2))
+            found.setdefault((p.effect, p.name), []).append((float(p.size), float(p.size_se) ** 2, phi))
     out = []
     for (effect, name), values in found.items():
-        v = np.array([a for a, _ in values])
-        w = 1.0 / np.array([b for _, b in values])
-        mean = float(np.sum(w * v) / np.sum(w))
-        df = len(values) - 1
-        q = float(np.sum(w * (v - mean) ** 2)) if df >= 1 else None
-        out.append(TiledPattern(effect, name, mean, float(np.sqrt(1.0 / np.sum(w))), len(values), q, df,
-                                None if q is None else float(stats.chi2.sf(q, df)), _between_tile_spread(values)))
+        w = 1.0 / np.array([b for _, b, _ in values])
+        mean = float(np.sum(w * np.array([a for a, _, _ in values])) / np.sum(w))
+        # the size and its SE as the tiles measured them; the agreement test with each tile's misfit, as a parameter's
+        q, df, p_same, spread = scalar_heterogeneity([(a, b * phi) for a, b, phi in values], mean)
+        out.append(TiledPattern(effect, name, mean, float(np.sqrt(1.0 / np.sum(w))), len(values), q, df, p_same,
+                                spread))
     return out
 
 
@@ -403,11 +418,11 @@ def combine_errors(tiles: Sequence[TileResult]) -> dict[str, Any]:
     classes: dict[str, float | None] = {}
     for name in names:
         pairs = [(t.classes[name], t.held_out.get(name, 0)) for t in tiles
-                 if not t.not_converged and t.classes.get(name) is not None and t.held_out.get(name, 0) > 0]
+                 if not t.excluded and t.classes.get(name) is not None and t.held_out.get(name, 0) > 0]
         n = sum(m for _, m in pairs)
         classes[name] = float(np.sqrt(sum(e * e * m for e, m in pairs) / n)) if n else None
     values = [v for v in classes.values() if v is not None]
-    var = [t.variance_error for t in tiles if not t.not_converged and t.variance_error is not None]
+    var = [t.variance_error for t in tiles if not t.excluded and t.variance_error is not None]
     return {"pixel": max(values) if values else None, "classes": classes,
             "variance": float(np.sqrt(np.mean(np.square(var)))) if var else None}
 
@@ -424,7 +439,7 @@ def combine_gof(tiles: Sequence[TileResult]) -> dict[str, float | None]:
         keys += [k for k in t.gof if k not in keys]
     out: dict[str, float | None] = {}
     for key in keys:
-        ps = [max(float(t.gof[key]), P_FLOOR) for t in tiles if not t.not_converged and t.gof.get(key) is not None]
+        ps = [max(float(t.gof[key]), P_FLOOR) for t in tiles if not t.excluded and t.gof.get(key) is not None]
         out[key] = float(stats.chi2.sf(-2.0 * float(np.sum(np.log(ps))), 2 * len(ps))) if ps else None
     return out
 
@@ -435,7 +450,7 @@ def combine_candidates(tiles: Sequence[TileResult]) -> list[CombinedCandidate]:
     rule of one check (ΔBIC > :data:`~forensics.check.diagnosis.FLAG_DBIC` and p < ``FLAG_P``); ranked by ΔBIC."""
     sums: dict[str, list[float]] = {}
     for t in tiles:
-        if t.not_converged:
+        if t.excluded:
             continue
         for c in t.candidates:
             s = sums.setdefault(c.effect, [0.0, 0, 0.0, 0, 0])
@@ -458,20 +473,20 @@ def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> T
     tiles = list(tiles)
     params, q, df, p = combine_params(tiles)
     warnings = []
-    failed = [t for t in tiles if t.not_converged]
+    failed = [t for t in tiles if t.excluded]
     if failed:
         where = "; ".join(_where(t) for t in failed[:5])
-        skipped = [t.not_converged[0] for t in failed if t.not_converged[0].startswith("not checked: ")]
+        skipped = [t.unchecked for t in failed if t.unchecked]
         warnings.append(f"{len(failed)} of {len(tiles)} tiles did not converge or could not be checked and are left "
                         f"out of every combined figure ({where}{' …' if len(failed) > 5 else ''})"
-                        + (f"; the first not checked: {skipped[0][len('not checked: '):]}" if skipped else ""))
-    if tiles and all(t.not_converged and t.not_converged[0].startswith("not checked: ") for t in tiles):
-        raise InputError("no tile of the frames could be checked: " + tiles[0].not_converged[0])
-    empty = [t for t in tiles if not t.not_converged and not any(v is not None for v in t.classes.values())]
+                        + (f"; the first not checked: {skipped[0]}" if skipped else ""))
+    if tiles and all(t.unchecked for t in tiles):
+        raise InputError(f"no tile of the frames could be checked: {tiles[0].unchecked}")
+    empty = [t for t in tiles if not t.excluded and not any(v is not None for v in t.classes.values())]
     if empty:
         warnings.append(f"{len(empty)} tile(s) gave no held-out error (no usable pixel means there, e.g. a dead or "
                         "saturated part of the sensor): " + "; ".join(_where(t) for t in empty[:5]))
-    usable = [t for t in tiles if not t.not_converged and t not in empty]
+    usable = [t for t in tiles if not t.excluded and t not in empty]
     if usable:  # what every tile says about the data (the design, the fields missing): the best-measured tile's
         best = max(usable, key=lambda t: sum(t.held_out.values()))
         warnings += [w for w in best.warnings if not w.startswith("only a region of the")]
@@ -499,7 +514,7 @@ def check_tile(data: Dataset, item: tuple[Tile, list[Any], np.random.SeedSequenc
     except InputError as exc:
         # a part of the frame the check cannot use (e.g. content-free or saturated there): the tile is named and
         # left out, the others still count
-        return TileResult(tile, [], [], {}, {}, None, {}, [], [f"not checked: {exc}"], [])
+        return TileResult(tile, [], [], {}, {}, None, {}, [], [], [], unchecked=str(exc))
     return TileResult.of(tile, result)
 
 
@@ -556,13 +571,18 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
         # the central tile first, in this process: every other tile's fit starts from its values (a tile from the
         # nulls spends most of its cycles finding what every tile shares; each still fits to convergence)
         first = check_tile(ds, (tiles[centre], list(add), seeds[centre], n_sim, None))
-        start = None if first.not_converged else {p.label: p.value for p in first.params if p.converged}
+        start = None if first.excluded else start_values(first.params)
     items = [(t, list(add), s, n_sim, start) for i, (t, s) in enumerate(zip(tiles, seeds))
              if not (first is not None and i == centre)]
     results = list(resolve(executor).map(check_tile, items, shared=ds, progress=progress, desc="tiles"))
     if first is not None:
         results.insert(centre, first)
     return combine(shape[:2], size, results)
+
+
+def start_values(params: Sequence[ParamEstimate]) -> dict[str, float]:
+    """The settled parameters of a check as ``effect.name`` → value: what :func:`check_tiles`' ``start`` takes."""
+    return {p.label: p.value for p in params if p.converged}
 
 
 def central_tile(tiles: Sequence[Tile], shape: Sequence[int]) -> int:

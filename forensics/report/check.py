@@ -415,7 +415,7 @@ def _tile_maps(rep: Report, tiled: TiledCheck) -> None:
 
         def z(t, label=label, centre=centre):
             own = next((q for q in t.params if q.label == label and q.se and q.converged and not q.bound), None)
-            if own is None or t.not_converged:
+            if own is None or t.excluded:
                 return None
             return (own.value - centre) / (own.se * math.sqrt(tile_dispersion(t)))
         ye, xe, grid = _tile_grid_values(tiled, z)
@@ -428,7 +428,7 @@ def _tile_maps(rep: Report, tiled: TiledCheck) -> None:
 
     def error(t):
         vals = [v for v in t.classes.values() if v is not None]
-        return None if t.not_converged or not vals else max(vals)
+        return None if t.excluded or not vals else max(vals)
     ye, xe, grid = _tile_grid_values(tiled, error)
     im = ax.pcolormesh(xe, ye, grid, cmap="magma", vmin=0, vmax=max(3.0, float(np.nanmax(grid)) if np.isfinite(grid).any() else 3.0))
     ax.set_ylim(ye[-1], ye[0])

@@ -188,3 +188,18 @@ def test_a_tile_that_misfits_weighs_less_in_the_heterogeneity_test_not_in_the_es
     misfit, _, _, _ = combine_params([tile(10.0, 2.0), tile(14.0, 2.0)])
     assert fit[0].q == pytest.approx(8.0) and misfit[0].q == pytest.approx(2.0)
     assert misfit[0].estimate.value == fit[0].estimate.value and misfit[0].estimate.se == fit[0].estimate.se
+
+
+def test_a_tile_that_could_not_be_checked_is_named_and_all_of_them_is_an_error():
+    from forensics._shared.errors import InputError
+    from forensics.check.tiles import combine
+
+    good = TileResult(Tile((0, 0, 8, 8), (0, 0, 8, 8)), ["offset"], [ParamEstimate("x", "a", 1.0, 0.1)],
+                      {"normal": 1.0}, {"normal": 10}, None, {}, [], [], [])
+    bad = TileResult(Tile((8, 0, 8, 8), (5, 0, 11, 8)), [], [], {}, {}, None, {}, [], [], [],
+                     unchecked="f.fits: content-free there")
+    whole = combine((16, 8), 8, [good, bad])
+    assert whole.failed == [bad] and whole.params[0].tiles == 1
+    assert any("rows 8–15" in w and "content-free there" in w for w in whole.warnings)
+    with pytest.raises(InputError, match="content-free there"):
+        combine((16, 8), 8, [bad])
