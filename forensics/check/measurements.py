@@ -664,6 +664,14 @@ def _assemble(ds: Dataset, groups: list[Group], repeated: list[int], parts: Any,
     if saturation is not None:
         notes.append(f"the frames saturate at {saturation:g} DN, below the full scale {full_scale:g} DN (a full well "
                      "reached before the converter's top): readouts that reached it are censored")
+    else:
+        saturation = full_well_level(mean_all, groups, interior)
+        if saturation is not None and saturation < full_scale:
+            notes.append(f"hot pixels saturate in the dark frames from {saturation:g} DN on (their dark signal stops "
+                         f"growing with the exposure there), below the full scale {full_scale:g} DN: readouts that "
+                         "reached it are censored")
+        else:
+            saturation = None
     meas = Measurements(ds.root, shp, full_scale, border, epoch_times, has_time, groups, mean_all, var_all, lo, hi,
                         repeated, mean_a, mean_b, n_a, n_b, len(ds) - len(excluded), notes=notes,
                         var_resid=var_resid, half_ms=half_ms, scene_all=scene_all, saturation=saturation,
@@ -728,6 +736,74 @@ def saturation_level(lo: np.ndarray, hi: np.ndarray, interior: np.ndarray, full_
     if level >= full_scale or level < 2.0 * floor + 10.0 or np.sum(hi_i > level + 2) > 0.005 * hi_i.size:
         return None  # at the full scale anyway, no range of light below it, or readouts beyond it
     return float(level)
+
+
+#: A dark pixel counts as saturated in a longer exposure when it grew by less than this share of the growth its
+#: excess over the bulk in the shorter exposure predicts.
+FULL_WELL_GROWTH = 0.5
+#: ... and only where its rise from t₀ to t₁ (the rate's evidence) is at least this many times the frames' robust
+#: spread at t₁: a clear signal, not the noise of a short baseline.
+FULL_WELL_CLEAR = 30.0
+#: The full-well level: the lowest saturated reading at and above which at least this share of the dark readings
+#: are saturated ones, and at least :data:`FULL_WELL_PIXELS` of them.
+FULL_WELL_SHARE = 0.5
+FULL_WELL_PIXELS = 3
+#: A saturated pixel's reading stays within this share of its rise (it does not fall back).
+FULL_WELL_BAND = 0.1
+
+
+def full_well_level(mean_all: np.ndarray, groups: Sequence[Group], interior: np.ndarray) -> float | None:
+    """The readout from which hot pixels saturate in dark frames, or None.
+
+    A cooled CCD's full well (or its anti-blooming drain) fills before the converter's top: a very hot pixel's dark
+    signal grows with the exposure until ≈ 61,000–65,000 ADU and then stays there (the 2017 STL-1001E: 47 pixels in
+    the 300 s dark at −5 °C, e.g. 7,190, 12,924, 18,911, 36,333, 63,436, 62,403 ADU at 10 … 300 s).  Such a pixel's
+    readouts do not follow the model's linear dark signal, and the fit followed them for ever (the check of
+    a tile with one of them still moving after 24 cycles).  A pixel whose excess fell back instead (a cosmic-ray
+    hit or a telegraph pixel's high state in the shorter exposure) is not saturated.  Unlike the atom of :func:`saturation_level` the level
+    differs from pixel to pixel, so it is found from the pixels' own series: between two dark conditions of one
+    epoch, gain and temperature (within 1 °C) with exposures t₀ < t₁ < t₂ (t₀ = 0: the biases), a pixel whose own
+    rate between t₀ and t₁ — a rise of at least :data:`FULL_WELL_CLEAR` times the frames' robust spread at t₁ —
+    predicts a growth g from t₁ to t₂, yet grew by less than :data:`FULL_WELL_GROWTH`·g, reads saturated at t₂.  The level is the lowest such
+    readout at and above which most of the readouts at t₂ are saturated ones (:data:`FULL_WELL_SHARE`; at least
+    :data:`FULL_WELL_PIXELS`): a random-telegraph pixel that stalls at a few thousand ADU lies among thousands of
+    hot pixels still growing, the full well above all of them.  Needs three dark exposures (biases included) per temperature.
+    """
+    from forensics.io.dataset import is_dark_subject
+
+    darks = [g for g in groups if is_dark_subject(g.subject) and g.exposure_s is not None and not g.scenes]
+    readings: list[np.ndarray] = []
+    flags: list[np.ndarray] = []
+    for g0 in darks:
+        series = [g0]  # the next two exposures up at g0's epoch, gain and temperature
+        for _ in range(2):
+            later = [g for g in darks if g.exposure_s > series[-1].exposure_s and g.epoch == g0.epoch
+                     and g.iso == g0.iso and (g.temperature_c is None) == (g0.temperature_c is None)
+                     and (g.temperature_c is None or abs(g.temperature_c - g0.temperature_c) < 1.0)]
+            if later:
+                series.append(min(later, key=lambda g: g.exposure_s))
+        if len(series) < 3:
+            continue
+        m0, m1, m2 = (mean_all[g.index][interior].astype(np.float64) for g in series)
+        t0, t1, t2 = (g.exposure_s for g in series)
+        spread = 1.4826 * float(np.median(np.abs(m1 - np.median(m1))))
+        rise = m1 - m0
+        predicted = rise * (t2 - t1) / (t1 - t0)  # the pixel's own rate between t0 and t1, carried on
+        # stalled, but not fallen back: a cosmic-ray hit in the middle exposure, or a telegraph pixel in its high
+        # state there, has a rise that is gone in the longer one
+        stalled = ((rise >= FULL_WELL_CLEAR * max(spread, 1.0)) & (m2 - m1 < FULL_WELL_GROWTH * predicted)
+                   & (m2 - m0 >= (1.0 - FULL_WELL_BAND) * rise))
+        readings.append(m2)
+        flags.append(stalled)
+    if not readings:
+        return None
+    order = np.argsort(np.concatenate(readings))[::-1]  # every reading at t₂, from the top down
+    values = np.concatenate(readings)[order]
+    stalled_share = np.cumsum(np.concatenate(flags)[order]) / np.arange(1, len(order) + 1)
+    count = np.cumsum(np.concatenate(flags)[order])
+    ok = np.flatnonzero((stalled_share >= FULL_WELL_SHARE) & (count >= FULL_WELL_PIXELS)
+                        & np.concatenate(flags)[order])
+    return float(np.floor(values[ok[-1]])) if ok.size else None
 
 
 def _refuse_content_free(ds: Dataset, groups: list[Group], dropped: list[int], excluded: list[tuple[str, str]],
