@@ -748,8 +748,9 @@ FULL_WELL_CLEAR = 30.0
 #: are saturated ones, and at least :data:`FULL_WELL_PIXELS` of them.
 FULL_WELL_SHARE = 0.5
 FULL_WELL_PIXELS = 3
-#: A saturated pixel's reading stays within this share of its rise (it does not fall back).
-FULL_WELL_BAND = 0.1
+#: A saturated pixel keeps at least this share of its rise from t₀ to t₁ at t₂ (its saturated readings scatter by a
+#: few per cent of the well, 62,154 then 61,005 ADU); a cosmic-ray hit at t₁ loses all of it.
+FULL_WELL_KEPT = 0.5
 
 
 def full_well_level(mean_all: np.ndarray, groups: Sequence[Group], interior: np.ndarray) -> float | None:
@@ -792,7 +793,7 @@ def full_well_level(mean_all: np.ndarray, groups: Sequence[Group], interior: np.
         # stalled, but not fallen back: a cosmic-ray hit in the middle exposure, or a telegraph pixel in its high
         # state there, has a rise that is gone in the longer one
         stalled = ((rise >= FULL_WELL_CLEAR * max(spread, 1.0)) & (m2 - m1 < FULL_WELL_GROWTH * predicted)
-                   & (m2 - m0 >= (1.0 - FULL_WELL_BAND) * rise))
+                   & (m2 - m0 >= FULL_WELL_KEPT * rise))
         readings.append(m2)
         flags.append(stalled)
     if not readings:
