@@ -186,27 +186,12 @@ def plan_series(frames: Sequence[SeriesFrame], tolerance: float = SETPOINT_TOLER
 
 
 def _group_keys(frames: Sequence[SeriesFrame], members: list[int], tolerance: float) -> list[tuple[str, Any]]:
-    """("set", set point) for frames with a set point, else ("measured", cluster centre) or ("unknown", None)."""
-    keys: dict[int, tuple[str, Any]] = {}
-    loose = []
-    for i in members:
-        fr = frames[i]
-        if fr.set_temperature_c is not None:
-            keys[i] = ("set", round(float(fr.set_temperature_c), 1))
-        elif fr.temperature_c is not None:
-            loose.append(i)
-        else:
-            keys[i] = ("unknown", None)
-    loose.sort(key=lambda i: frames[i].temperature_c)  # type: ignore[arg-type, return-value]
-    cluster: list[int] = []
-    for i in loose + [None]:  # type: ignore[list-item]
-        if cluster and (i is None or frames[i].temperature_c - frames[cluster[-1]].temperature_c > tolerance):
-            centre = round(float(np.median([frames[j].temperature_c for j in cluster])), 1)
-            keys.update({j: ("measured", centre) for j in cluster})
-            cluster = []
-        if i is not None:
-            cluster.append(i)
-    return [keys[i] for i in members]
+    """("set", set point) for frames with a set point, else ("measured", cluster centre) or ("unknown", None)
+    (:func:`forensics.io.dataset.temperature_groups`, the rule ``forensics info`` lists them by too)."""
+    from forensics.io.dataset import temperature_groups
+
+    return temperature_groups([frames[i].set_temperature_c for i in members],
+                              [frames[i].temperature_c for i in members], tolerance)
 
 
 # =========================================================================== reading

@@ -40,7 +40,7 @@ image in memory.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -216,6 +216,40 @@ def set_point(frame: Frame) -> float | None:
         return float(value)
     except (TypeError, ValueError):
         return None
+
+
+def temperature_groups(set_points: Sequence[float | None], measured: Sequence[float | None],
+                       tolerance: float) -> list[tuple[str, float | None]]:
+    """Per frame, the temperature group it belongs to in a dark series: ``("set", set point)`` (rounded to 0.1 °C)
+    for a frame with a set point; for the others a cluster of measured temperatures, ``("measured", centre)`` —
+    sorted readings split where they jump by more than ``tolerance`` °C, the centre the cluster's median rounded
+    to 0.1 °C; ``("unknown", None)`` for a frame with neither.  (``defects detect`` groups its frames so and
+    ``forensics info`` lists them so: one rule.)
+
+    Examples
+    --------
+    >>> temperature_groups([None, None, None, -10.0], [-10.1, -4.9, -9.95, -9.8], 1.0)
+    [('measured', -10.0), ('measured', -4.9), ('measured', -10.0), ('set', -10.0)]
+    """
+    keys: dict[int, tuple[str, float | None]] = {}
+    loose = []
+    for i, (sp, t) in enumerate(zip(set_points, measured)):
+        if sp is not None:
+            keys[i] = ("set", round(float(sp), 1))
+        elif t is not None:
+            loose.append(i)
+        else:
+            keys[i] = ("unknown", None)
+    loose.sort(key=lambda i: measured[i])  # type: ignore[arg-type, return-value]
+    cluster: list[int] = []
+    for i in loose + [None]:  # type: ignore[list-item]
+        if cluster and (i is None or measured[i] - measured[cluster[-1]] > tolerance):  # type: ignore[operator]
+            centre = round(float(np.median([measured[j] for j in cluster])), 1)
+            keys.update({j: ("measured", centre) for j in cluster})
+            cluster = []
+        if i is not None:
+            cluster.append(i)
+    return [keys[i] for i in range(len(set_points))]
 
 
 @dataclass
