@@ -185,3 +185,31 @@ def test_info_groups_frames_without_a_set_point_as_detect_does(tmp_path, cli):
     assert sorted(plan.label(g) for g in range(len(plan.groups))) == [f"measured {c:+.1f} °C" for c in centres]
     code, out, _ = cli("info", str(tmp_path))
     assert code == 0 and all(out.count(f"measured {c:+.1f}") == 3 for c in centres)
+
+
+def test_binning_from_the_header_or_the_manifest(tmp_path):
+    """XBINNING/YBINNING become the column ``binning`` (a manifest may give it: ``2x2`` or ``2``); a frame that states
+    none is unknown and mixes with any; two stated binnings refuse the dataset naming a frame of each."""
+    from forensics.io.dataset import binning, common_binning
+
+    root = tmp_path / "ccd"
+    root.mkdir()
+    for i in range(3):
+        hdu = _hdu("Dark Frame", 60.0, -5.0, -5.0)
+        hdu.header["XBINNING"] = hdu.header["YBINNING"] = 1
+        hdu.writeto(root / f"d{i}.fits")
+    _hdu("Dark Frame", 60.0, -5.0, -5.0).writeto(root / "unstated.fits")
+    ds = open_dataset(root)
+    assert [binning(f) for f in ds] == [(1, 1), (1, 1), (1, 1), None]
+    assert ds.binning() == (1, 1) and ds.shape() == (8, 10)
+    (root / "manifest.csv").write_text("file,binning\nd0.fits,\nd1.fits,2\nd2.fits,\nunstated.fits,\n")
+    ds = open_dataset(root)
+    with pytest.raises(InputError) as err:
+        ds.shape()
+    msg = str(err.value)
+    assert msg.startswith(str(root / "d1.fits")) and "binned 2×2" in msg
+    assert "d0.fits and 1 more frames are binned 1×1" in msg
+    assert common_binning([("a", None), ("b", None)]) is None
+    (root / "manifest.csv").write_text("file,binning\nd1.fits,2 by 2\n")
+    with pytest.raises(InputError, match="d1.fits: binning '2 by 2' is not a binning"):
+        open_dataset(root).binning()
