@@ -576,8 +576,7 @@ def no_repeated_darks(ds: Dataset, groups: Sequence[Group]) -> None:
            "every exposure and temperature has a single frame")
     raise InputError(f"{ds.root}: no condition of these dark frames has two or more frames: {why}; the noise floor "
                      "is measured from repeated frames of one condition (dark frames are not pooled as photographs): "
-                     "take at least 2 frames of one exposure (e.g. biases) at a temperature the sensor holds, or "
-                     "analyse the series with 'forensics defects detect'")
+                     "take at least 2 frames of one exposure (e.g. biases) at a temperature the sensor holds")
 
 
 def unsettled_frames(ds: Dataset, tolerance: float | None = None) -> list[Any]:

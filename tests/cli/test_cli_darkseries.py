@@ -144,7 +144,10 @@ def test_a_series_mixing_binnings_is_refused(series, cli, tmp_path):
     header["XBINNING"] = header["YBINNING"] = 2
     odd.unlink()
     fits.PrimaryHDU(data, header).writeto(odd)  # same size, another binning (a sub-frame binned on the chip)
-    for command in (("info",), ("defects", "detect")):
-        code, _, err = cli(*command, mixed)
-        assert code == 3 and len(err.strip().splitlines()) == 1
+    fp = tmp_path / "fp.npz"
+    for command in (("info", mixed), ("defects", "detect", mixed), ("model", "check", mixed),
+                    ("fingerprint", "build", mixed, "-o", fp)):
+        code, _, err = cli(*command, "--quiet")
+        assert code == 3 and len(err.strip().splitlines()) == 1, command
         assert odd.name in err and "2×2" in err and "1×1" in err
+    assert not fp.exists()
