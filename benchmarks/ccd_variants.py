@@ -38,6 +38,9 @@ VARIANTS = {
     "ext_fts": dict(suffix=".fts"),
     "odd_size": {},
     "truncated": {},
+    "never_settles_all": {},  # every frame's CCD-TEMP 1.5 °C and more above its set point: no condition repeats
+    "binning2_one_sp": dict(binning=2, setpoints=(-5.0,), n_flats=0, n_repeat_dark=0),
+    "mixed_binning": {},  # one dark re-labelled XBINNING 2 at the same size (a binned sub-frame)
 }
 
 def truth_summary(truth):
@@ -70,6 +73,14 @@ def main(names):
                 data, hdr = h[0].data[::2, ::2].copy(), h[0].header.copy()
             hdr["XBINNING"] = hdr["YBINNING"] = 2
             victim.unlink(); fits.PrimaryHDU(data, hdr).writeto(victim)
+        if name == "never_settles_all":
+            for i, f in enumerate(files):
+                with fits.open(f, mode="update") as h:
+                    h[0].header["CCD-TEMP"] = h[0].header["SET-TEMP"] + 1.5 + 0.01 * i
+        if name == "mixed_binning":
+            victim = next(f for f in files if f.name.startswith("dark"))
+            with fits.open(victim, mode="update") as h:
+                h[0].header["XBINNING"] = h[0].header["YBINNING"] = 2
         if name == "truncated":  # one dark cut short (a copy interrupted)
             victim = next(f for f in files if f.name.startswith("dark"))
             raw = victim.read_bytes(); victim.write_bytes(raw[: len(raw) * 2 // 3])

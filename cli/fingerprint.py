@@ -156,6 +156,7 @@ def run_build(args: argparse.Namespace) -> int:
     out = Path(args.output)
     refuse_existing(out, args.force, file=True)  # before hours of work, not after
     ds = open_input(args, args.set)
+    ds.binning()  # frames of different binnings are refused, naming one of each (the build reads every frame anyway)
     info(args, f"building a fingerprint from {len(ds)} images of {ds.root} ({region.spec}) …")
     # Finished chunks are kept in .FP.partial beside the output until it is written: an interrupted build resumes.
     partial = out.with_name(f".{out.name}.partial")

@@ -50,7 +50,9 @@ def run(args: argparse.Namespace) -> int:
         for row in s.frame_types:
             temps = row["temperature_c"]
             measured = "?" if temps is None else f"{temps[0]:+.2f} … {temps[1]:+.2f}"
-            setpoint = "?" if row["set_temperature_c"] is None else f"{row['set_temperature_c']:+.1f}"
+            setpoint = ("?" if row["set_temperature_c"] is None and row["measured_c"] is None
+                        else f"{row['set_temperature_c']:+.1f}" if row["measured_c"] is None
+                        else f"measured {row['measured_c']:+.1f}")
             exposure = "?" if row["exposure_s"] is None else f"{row['exposure_s']:g}"
             lines.append(f"{row['frame_type']:>10} {exposure:>12} {setpoint:>14} {row['n']:>6} {measured:>16}")
             if row["off_set_point"]:

@@ -119,6 +119,20 @@ def estimates(effects: Sequence[Effect], free: Sequence[tuple[int, str]], inform
     return out
 
 
+def with_held(params: Sequence[ParamEstimate], effects: Sequence[Effect]) -> list[ParamEstimate]:
+    """``params`` with, after each effect's own estimates, the parameters it held for these data
+    (:meth:`~forensics.sensor.model.Effect.held`) as not identifiable, at the value they were held at, with the
+    effect's reason (a single temperature and T_d, say) — so that a held parameter is stated, not left out."""
+    out = list(params)
+    for e in effects:
+        for name, why in e.held().items():
+            est = ParamEstimate(e.key, name, float(getattr(e, name)), None, unit(e, name), identifiable=False,
+                                note=why)
+            last = max((i for i, p in enumerate(out) if p.effect == e.key), default=len(out) - 1)
+            out.insert(last + 1, est)
+    return out
+
+
 #: one-sided 95 % point of the boundary likelihood-ratio mixture ½χ²₀ + ½χ²₁ (√2.71)
 ONE_SIDED_95 = 1.6449
 

@@ -533,6 +533,7 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     groups = group_frames(ds, epoch, epoch_times)
     repeated = [g.index for g in groups if g.n >= 2]
     if not repeated:
+        no_repeated_darks(ds, groups)
         groups = pool_scenes(ds, groups)
         repeated = [g.index for g in groups if g.n >= 2]
         if not repeated:
@@ -549,20 +550,55 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
                      notes, has_time, epoch_times, border, single)
 
 
-def off_set_point(ds: Dataset, tolerance: float | None = None) -> list[str]:
-    """A warning naming the frames whose measured temperature lies more than ``tolerance`` °C from their set
-    point (the sensor never reached it): their condition is at the temperature measured, and the dark
-    current's law carries them there — if the measured temperature is right.  ``tolerance``: default the FITS
-    reader's (:data:`forensics.io.fits.SETPOINT_TOLERANCE_C`)."""
+def no_repeated_darks(ds: Dataset, groups: Sequence[Group]) -> None:
+    """Refuse a dark series in which no condition repeats, saying why, instead of pooling its frames as
+    photographs of different scenes.
+
+    Why: dark frames are not scenes; pooled per epoch they lose their exposures and temperatures (which differ),
+    and a check with a dark current then stopped with "'dark_current' needs the field 'exposure_s' for every
+    frame" although every frame had one.  The usual cause is a sensor that never settled: frames measured more
+    than :data:`forensics.io.fits.SETPOINT_TOLERANCE_C` from their set point keep their own reading, so each is
+    a condition of its own.
+
+    Raises
+    ------
+    InputError
+        Some condition holds dark frames (``subject`` dark) and none has two or more frames.
+    """
+    from forensics.io.dataset import is_dark_subject
+    from forensics.io.fits import SETPOINT_TOLERANCE_C
+
+    if not any(is_dark_subject(g.subject) for g in groups):
+        return
+    off = unsettled_frames(ds)
+    why = (f"{len(off)} of {len(ds)} frames were measured more than {SETPOINT_TOLERANCE_C:g} °C from their set "
+           f"point (the sensor never settled; e.g. {off[0].file}), so each keeps its own temperature" if off else
+           "every exposure and temperature has a single frame")
+    raise InputError(f"{ds.root}: no condition of these dark frames has two or more frames: {why}; the noise floor "
+                     "is measured from repeated frames of one condition (dark frames are not pooled as photographs): "
+                     "take at least 2 frames of one exposure (e.g. biases) at a temperature the sensor holds")
+
+
+def unsettled_frames(ds: Dataset, tolerance: float | None = None) -> list[Any]:
+    """The frames whose measured temperature lies more than ``tolerance`` °C from their set point (the sensor
+    never reached it); ``tolerance``: default the FITS reader's (:data:`forensics.io.fits.SETPOINT_TOLERANCE_C`)."""
     from forensics.io.dataset import set_point
     from forensics.io.fits import SETPOINT_TOLERANCE_C
 
     tolerance = SETPOINT_TOLERANCE_C if tolerance is None else tolerance
-    off = []
-    for f in ds.frames:
-        sp_c = set_point(f)
-        if sp_c is not None and f.temperature_c is not None and abs(f.temperature_c - sp_c) > tolerance:
-            off.append(f"{f.file} ({f.temperature_c:.2f} °C, set point {sp_c:g} °C)")
+    return [f for f in ds.frames if (sp_c := set_point(f)) is not None and f.temperature_c is not None
+            and abs(f.temperature_c - sp_c) > tolerance]
+
+
+def off_set_point(ds: Dataset, tolerance: float | None = None) -> list[str]:
+    """A warning naming the frames whose measured temperature lies more than ``tolerance`` °C from their set
+    point (:func:`unsettled_frames`): their condition is at the temperature measured, and the dark current's
+    law carries them there — if the measured temperature is right."""
+    from forensics.io.dataset import set_point
+    from forensics.io.fits import SETPOINT_TOLERANCE_C
+
+    tolerance = SETPOINT_TOLERANCE_C if tolerance is None else tolerance
+    off = [f"{f.file} ({f.temperature_c:.2f} °C, set point {set_point(f):g} °C)" for f in unsettled_frames(ds, tolerance)]
     if not off:
         return []
     return [f"{len(off)} frame(s) measured more than {tolerance:g} °C from their set point (the sensor had not "

@@ -28,6 +28,7 @@ from forensics.check.reduced import PatternShare, dark_pattern_shares, reduced_f
 from forensics.check.diagnosis import diagnose
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel, fit_model
+from forensics.check.identifiability import with_held
 from forensics.check.gof import (
     class_errors,
     covariate_checks,
@@ -141,7 +142,7 @@ def run_check(ev: Evidence, effects: Sequence[Effect], start: Mapping[str, float
     return CheckResult(
         heldout=heldout,
         effects=[e.key for e in fitted.effects],
-        params=fitted.params,
+        params=with_held(fitted.params, fitted.effects),
         patterns=fitted.patterns,
         error={"pixel": max(vals) if vals else None, "classes": classes, "variance": err_var, "growth": err_growth},
         gof={"pixel": gof_pixel, "variance": gof_var, "growth": gof_growth, "spatial": gof_spatial},

@@ -44,7 +44,7 @@ from forensics.defects.detection import (
     load_mask,
     robust_normal,
 )
-from forensics.io.dataset import is_dark_subject
+from forensics.io.dataset import binning, is_dark_subject
 from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.stats.counts import LEVEL, garwood
 
@@ -150,6 +150,10 @@ def detect_dark(fit: DarkSeriesFit, settings: DarkSettings = DarkSettings(), lev
     law, source = _law_for(fit, settings)
     t_ref = settings.t_ref if settings.t_ref is not None else _default_t_ref(fit)
     warnings = list(fit.warnings)
+    if settings.law is not None and (settings.law.file or settings.law.classes):
+        # a law fitted elsewhere: its rate classes are rates of pixels of its binning (one --doubling has no
+        # classes and holds whatever the binning)
+        warnings += law.binning_warnings(fit.binning)
     carried, errors = [], []
     for g in fit.groups:
         if law is None or g.temperature_c is None or t_ref is None or g.temperature_c == t_ref:
@@ -235,7 +239,7 @@ def _law_for(fit: DarkSeriesFit, settings: DarkSettings) -> tuple[TemperatureLaw
     if settings.law is not None:
         return settings.law, settings.law.source or "given"
     if can_fit(fit.groups):
-        law = fit_temperature_law(fit.groups)
+        law = replace(fit_temperature_law(fit.groups), binning=fit.binning)
         return law, law.source
     return None, "none (the series has one temperature)"
 
@@ -392,7 +396,7 @@ def series_frames(ds: Any) -> list[SeriesFrame]:
         if kind == "dark" and exposure == 0:
             kind = "bias"
         out.append(SeriesFrame(str(frame.path), kind, exposure, frame.get("temperature_c"),
-                               _number(frame.get("set_temperature_c")), frame.captured))
+                               _number(frame.get("set_temperature_c")), frame.captured, binning(frame)))
     return out
 
 

@@ -96,6 +96,11 @@ class TemperatureLaw:
     classes: list[LawPoint] = field(default_factory=list)
     temperatures: list[float] = field(default_factory=list)
     source: str = ""
+    #: the on-chip binning ``(x, y)`` of the frames it was fitted on (None: not stated, or a law file written before
+    #: the binning was kept); a binned pixel sums x·y pixels' dark charge, so its rate classes mean other pixels
+    binning: tuple[int, int] | None = None
+    #: the file it was read from (:meth:`load`; not saved)
+    file: str = ""
 
     # ------------------------------------------------------------------ evaluation
     def _knots(self, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -142,13 +147,39 @@ class TemperatureLaw:
         return {"format": LAW_FORMAT, "law": "rate ∝ 2^((T − T_ref)/T_d), T_d by rate class",
                 "t_class_c": self.t_class, "bulk": self.bulk.to_dict(),
                 "classes": [c.to_dict() for c in self.classes], "temperatures_c": self.temperatures,
-                "source": self.source}
+                "source": self.source, "binning": list(self.binning) if self.binning else None}
 
     @classmethod
     def from_dict(cls, obj: dict[str, Any]) -> "TemperatureLaw":
+        b = obj.get("binning")  # absent in files written before it was kept: unknown
         return cls(float(obj["t_class_c"]), LawPoint.from_dict(obj["bulk"]),
                    [LawPoint.from_dict(c) for c in obj.get("classes", [])],
-                   [float(t) for t in obj.get("temperatures_c", [])], str(obj.get("source", "")))
+                   [float(t) for t in obj.get("temperatures_c", [])], str(obj.get("source", "")),
+                   (int(b[0]), int(b[1])) if b else None)
+
+    def binning_warnings(self, binning: tuple[int, int] | None) -> list[str]:
+        """Check that the law fits a series of ``binning`` (``(x, y)``; None: not stated): nothing when both agree
+        or neither is known, a warning when only one is known.
+
+        Raises
+        ------
+        InputError
+            Both are known and differ, naming the law's file and both binnings: a binned pixel sums x·y pixels'
+            dark charge, so its rates (and a hot-pixel threshold in ADU/s) and the rate classes of the law mean
+            different pixels.
+        """
+        name = self.file or f"the temperature law ({self.source or 'given'})"
+        if self.binning is not None and binning is not None and self.binning != binning:
+            raise InputError(f"{name}: fitted on frames binned {_bins(self.binning)} but this series is binned "
+                             f"{_bins(binning)}; a binned pixel sums several pixels' dark charge, so the law's rate "
+                             "classes mean other pixels: save a law from a series of this binning (--save-law), or "
+                             "give one doubling temperature (--doubling)")
+        if (self.binning is None) != (binning is None):
+            known = (f"the law's is {_bins(self.binning)}, the series' is not stated" if self.binning else
+                     f"the series is binned {_bins(binning)}, the law's binning is not stated")  # type: ignore[arg-type]
+            return [f"{name}: cannot check that the law was fitted on frames of this binning ({known}; a law file "
+                    "written before the binning was kept has none)"]
+        return []
 
     def save(self, path: str | os.PathLike, force: bool = False) -> Path:
         """Write the law as JSON (atomically)."""
@@ -168,9 +199,15 @@ class TemperatureLaw:
             raise InputError(f"{path}: not a temperature law written by 'forensics defects detect --save-law' "
                              f"(format {obj.get('format')!r})")
         try:
-            return cls.from_dict(obj)
-        except (KeyError, TypeError, ValueError) as exc:
+            law = cls.from_dict(obj)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise InputError(f"{path}: malformed temperature law ({exc})") from None
+        law.file = str(path)
+        return law
+
+
+def _bins(binning: tuple[int, int]) -> str:
+    return f"{binning[0]}×{binning[1]}"
 
 
 # =========================================================================== fitting

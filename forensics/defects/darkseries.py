@@ -95,6 +95,8 @@ class SeriesFrame:
     temperature_c: float | None = None
     set_temperature_c: float | None = None
     captured: float | None = None
+    #: on-chip binning (x, y); None where the header or manifest does not state it
+    binning: tuple[int, int] | None = None
 
     @property
     def name(self) -> str:
@@ -111,6 +113,13 @@ class SeriesPlan:
     flats: tuple[int, ...]
     excluded: dict[int, str] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+
+    @property
+    def binning(self) -> tuple[int, int] | None:
+        """The frames' common binning (:func:`forensics.io.dataset.common_binning`; None where none states one)."""
+        from forensics.io.dataset import common_binning
+
+        return common_binning([(f.path, f.binning) for f in self.frames])
 
     def biases(self, group: int) -> np.ndarray:
         """Which of a group's frames are biases, by their frame type: a bias is a bias whatever exposure its header
@@ -138,9 +147,11 @@ def plan_series(frames: Sequence[SeriesFrame], tolerance: float = SETPOINT_TOLER
     Raises
     ------
     InputError
-        A frame without an exposure time or frame type, or frames of which only some give a temperature.
+        A frame without an exposure time or frame type, frames of which only some give a temperature, or frames of
+        different binnings.
     """
     frames = tuple(frames)
+    SeriesPlan(frames, (), (), ()).binning  # frames of different binnings: refused, naming one of each
     excluded: dict[int, str] = {}
     notes: list[str] = []
     darks, flats = [], []
@@ -186,27 +197,12 @@ def plan_series(frames: Sequence[SeriesFrame], tolerance: float = SETPOINT_TOLER
 
 
 def _group_keys(frames: Sequence[SeriesFrame], members: list[int], tolerance: float) -> list[tuple[str, Any]]:
-    """("set", set point) for frames with a set point, else ("measured", cluster centre) or ("unknown", None)."""
-    keys: dict[int, tuple[str, Any]] = {}
-    loose = []
-    for i in members:
-        fr = frames[i]
-        if fr.set_temperature_c is not None:
-            keys[i] = ("set", round(float(fr.set_temperature_c), 1))
-        elif fr.temperature_c is not None:
-            loose.append(i)
-        else:
-            keys[i] = ("unknown", None)
-    loose.sort(key=lambda i: frames[i].temperature_c)  # type: ignore[arg-type, return-value]
-    cluster: list[int] = []
-    for i in loose + [None]:  # type: ignore[list-item]
-        if cluster and (i is None or frames[i].temperature_c - frames[cluster[-1]].temperature_c > tolerance):
-            centre = round(float(np.median([frames[j].temperature_c for j in cluster])), 1)
-            keys.update({j: ("measured", centre) for j in cluster})
-            cluster = []
-        if i is not None:
-            cluster.append(i)
-    return [keys[i] for i in members]
+    """("set", set point) for frames with a set point, else ("measured", cluster centre) or ("unknown", None)
+    (:func:`forensics.io.dataset.temperature_groups`, the rule ``forensics info`` lists them by too)."""
+    from forensics.io.dataset import temperature_groups
+
+    return temperature_groups([frames[i].set_temperature_c for i in members],
+                              [frames[i].temperature_c for i in members], tolerance)
 
 
 # =========================================================================== reading
@@ -470,6 +466,8 @@ class DarkSeriesFit:
     saturation: float | None = None
     settings: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    #: the frames' on-chip binning (x, y); None where they do not state it
+    binning: tuple[int, int] | None = None
 
     @property
     def n_frames(self) -> int:
@@ -480,7 +478,8 @@ class DarkSeriesFit:
         return [f for f in self.frames if (not f.used and f.frame_type in DARK_TYPES) or f.problems]
 
     def to_dict(self) -> dict[str, Any]:
-        return {"shape": list(self.shape), "groups": [g.to_dict() for g in self.groups],
+        return {"shape": list(self.shape), "binning": list(self.binning) if self.binning else None,
+                "groups": [g.to_dict() for g in self.groups],
                 "gain_used_e_per_adu": self.gain_used, "gain_source": self.gain_source, "gain": self.gain,
                 "saturation_adu": self.saturation, "settings": self.settings,
                 "frames": [f.to_dict() for f in self.frames],
@@ -541,7 +540,8 @@ def fit_dark_series(plan: SeriesPlan, gain: float | None = None, saturation: flo
         gain_info["dark_shot_noise"] = dark_ptc.to_dict()
     settings = {"k_outlier": k, "k_grow": k_grow, "rounds": rounds, "saturation_adu": saturation,
                 "setpoint_tolerance_c": SETPOINT_TOLERANCE_C}
-    return DarkSeriesFit(shape, groups, reports, gain_used, source, gain_info, saturation, settings, warnings)
+    return DarkSeriesFit(shape, groups, reports, gain_used, source, gain_info, saturation, settings, warnings,
+                         plan.binning)
 
 
 def chunk_items(plan: SeriesPlan, exposures: list[np.ndarray]

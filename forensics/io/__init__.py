@@ -12,7 +12,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
     __name__,
     submod_attrs={
         "content": ["MIN_EXPOSED", "FrameContent", "content_problem", "frame_content"],
-        "dataset": ["Dataset", "Frame", "list_images", "nominal_temperature", "open_dataset", "set_point", "split_epochs"],
+        "dataset": ["Dataset", "Frame", "binning", "common_binning", "list_images", "nominal_temperature",
+                    "open_dataset", "set_point", "split_epochs", "temperature_groups"],
         "dates": ["FIRST_YEAR", "LAST_YEAR", "decimal_year", "from_decimal_year", "parse_captured"],
         "manifest": ["ManifestRow", "read_manifest", "write_manifest"],
         "describe": ["DatasetSummary", "summarize_dataset", "summarize_file"],

@@ -40,7 +40,7 @@ image in memory.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -141,7 +141,7 @@ class Frame:
         """A FITS header's conditions where the manifest gives none: the measured temperature, the frame type as the
         ``subject`` (bias and dark frames are ``dark``: taken without light) and as ``frame_type``, the set point
         and the gain as further columns."""
-        columns = ["frame_type", "set_temperature_c", "gain_e_per_adu"]
+        columns = ["frame_type", "set_temperature_c", "gain_e_per_adu", "binning"]
         if self.temperature_c is None and extra.get("temperature_c") is not None:
             self.temperature_c = float(extra["temperature_c"])
         elif self.temperature_c is not None:
@@ -152,7 +152,8 @@ class Frame:
             self.subject = FRAME_SUBJECTS.get(kind, kind)
         for column in columns:
             if not self.extra.get(column) and extra.get(column) is not None:
-                self.extra[column] = str(extra[column])
+                value = extra[column]
+                self.extra[column] = "x".join(map(str, value)) if column == "binning" else str(value)
 
     def _value(self, name: str) -> float | None:
         if getattr(self, name) is None and not self._exif_done:
@@ -218,6 +219,93 @@ def set_point(frame: Frame) -> float | None:
         return None
 
 
+def binning(frame: Frame) -> tuple[int, int] | None:
+    """The frame's on-chip binning ``(x, y)`` — FITS XBINNING/YBINNING, or a manifest column ``binning`` such as
+    ``2x2`` or ``2`` — or None where it is not stated (unknown, not assumed 1×1).
+
+    Examples
+    --------
+    >>> from pathlib import Path
+    >>> binning(Frame(Path("d.fit"), "d.fit", extra={"binning": "2x2"})), binning(Frame(Path("d.png"), "d.png"))
+    ((2, 2), None)
+    """
+    value = str(frame.get("binning") or "").strip().lower()
+    if not value:
+        return None
+    try:
+        parts = [int(float(v)) for v in value.replace("×", "x").split("x")]
+    except ValueError:
+        raise InputError(f"{printable(str(frame.path))}: binning {value!r} is not a binning; write it as 2x2 (or 2), "
+                         "or leave it empty") from None
+    if len(parts) == 1:
+        parts *= 2
+    if len(parts) != 2 or min(parts) < 1:
+        raise InputError(f"{printable(str(frame.path))}: binning {value!r} is not a binning; write it as 2x2 (or 2), "
+                         "or leave it empty")
+    return parts[0], parts[1]
+
+
+def common_binning(named: Sequence[tuple[str, tuple[int, int] | None]]) -> tuple[int, int] | None:
+    """The binning ``(x, y)`` that every frame stating one shares (frames that state none are unknown and do not
+    count), or None when none states one.
+
+    Raises
+    ------
+    InputError
+        Two frames state different binnings, naming one of each: a binned pixel sums the charge of x·y pixels, so
+        its dark rate, noise and defects mean something else, and one analysis cannot mix them.
+    """
+    stated = [(name, b) for name, b in named if b is not None]
+    if not stated:
+        return None
+    bins = [b for _, b in stated]
+    common = max(dict.fromkeys(bins), key=bins.count)  # the majority binning (ties: the first); another is named
+    odd = next((name, b) for name, b in stated if b != common) if len(set(bins)) > 1 else None
+    if odd is not None:
+        other = next(name for name, b in stated if b == common)
+        more = bins.count(common) - 1
+        raise InputError(f"{printable(odd[0])}: binned {odd[1][0]}×{odd[1][1]} but {printable(other)}"
+                         f"{f' and {more} more frames are' if more else ' is'} binned {common[0]}×{common[1]}; "
+                         "a binned pixel sums the charge of "
+                         "several, so frames of different binnings cannot be analysed together: put each binning "
+                         "in its own folder")
+    return common
+
+
+def temperature_groups(set_points: Sequence[float | None], measured: Sequence[float | None],
+                       tolerance: float) -> list[tuple[str, float | None]]:
+    """Per frame, the temperature group it belongs to in a dark series: ``("set", set point)`` (rounded to 0.1 °C)
+    for a frame with a set point; for the others a cluster of measured temperatures, ``("measured", centre)`` —
+    sorted readings split where they jump by more than ``tolerance`` °C, the centre the cluster's median rounded
+    to 0.1 °C; ``("unknown", None)`` for a frame with neither.  (``defects detect`` groups its frames so and
+    ``forensics info`` lists them so: one rule.)
+
+    Examples
+    --------
+    >>> temperature_groups([None, None, None, -10.0], [-10.1, -4.9, -9.95, -9.8], 1.0)
+    [('measured', -10.0), ('measured', -4.9), ('measured', -10.0), ('set', -10.0)]
+    """
+    keys: dict[int, tuple[str, float | None]] = {}
+    loose = []
+    for i, (sp, t) in enumerate(zip(set_points, measured)):
+        if sp is not None:
+            keys[i] = ("set", round(float(sp), 1))
+        elif t is not None:
+            loose.append(i)
+        else:
+            keys[i] = ("unknown", None)
+    loose.sort(key=lambda i: measured[i])  # type: ignore[arg-type, return-value]
+    cluster: list[int] = []
+    for i in loose + [None]:  # type: ignore[list-item]
+        if cluster and (i is None or measured[i] - measured[cluster[-1]] > tolerance):  # type: ignore[operator]
+            centre = round(float(np.median([measured[j] for j in cluster])), 1)
+            keys.update({j: ("measured", centre) for j in cluster})
+            cluster = []
+        if i is not None:
+            cluster.append(i)
+    return [keys[i] for i in range(len(set_points))]
+
+
 @dataclass
 class Dataset:
     """A list of frames rooted at a folder.  Slicing and grouping give sub-datasets."""
@@ -253,11 +341,13 @@ class Dataset:
         Raises
         ------
         InputError
-            If the frames do not all have the same size, naming the first that differs.
+            If the frames do not all have the same size, naming the first that differs, or state different
+            binnings (:meth:`binning`).
         """
         if not self.frames:
             raise InputError(f"{printable(str(self.root))}: dataset has no images")
         infos = [frame.info() for frame in self.frames]
+        self.binning()  # before the sizes: a frame of another binning is named as such, not as another size
         sizes = [(i.width, i.height, i.channels) for i in infos]
         common = max(set(sizes), key=sizes.count)  # the majority size; the odd ones are named
         for info, size in zip(infos, sizes):
@@ -267,6 +357,16 @@ class Dataset:
                     f"{common[0]}×{common[1]}×{common[2]}; a dataset's images must all have one size"
                 )
         return infos[0].shape
+
+    def binning(self) -> tuple[int, int] | None:
+        """The frames' common on-chip binning (:func:`common_binning`; None where none states one).
+
+        Raises
+        ------
+        InputError
+            Two frames state different binnings, naming one of each.
+        """
+        return common_binning([(str(f.path), binning(f)) for f in self.frames])
 
     def group_by(self, key: str | Callable[[Frame], Any]) -> dict[Any, "Dataset"]:
         """Split into sub-datasets by a manifest column name or a function of the frame, in first-seen order."""

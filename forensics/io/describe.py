@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from forensics.io.dataset import Dataset, set_point
+from forensics.io.dataset import Dataset, set_point, temperature_groups
 from forensics.io.images import ImageInfo, is_raw, read_info, read_raw
 
 
@@ -53,23 +53,28 @@ def summarize_dataset(ds: Dataset) -> DatasetSummary:
 
 
 def frame_types(ds: Dataset) -> list[dict[str, Any]]:
-    """Calibration frames (FITS IMAGETYP or a manifest ``frame_type``) by type, exposure and set point: how many, the
-    measured temperatures, and the frames measured more than a degree off their set point."""
+    """Calibration frames (FITS IMAGETYP or a manifest ``frame_type``) by type, exposure and temperature group: how
+    many, the measured temperatures, and the frames measured more than a degree off their set point.
+
+    The temperature group is the one ``defects detect`` uses (:func:`~forensics.io.dataset.temperature_groups`):
+    the set point, or for frames without one a cluster of measured temperatures (``measured_c``, its centre) — so
+    that biases at −10 and −5 °C without SET-TEMP are two rows, not one spanning both."""
     from forensics.io.fits import SETPOINT_TOLERANCE_C
 
+    typed = [f for f in ds if f.get("frame_type")]
+    keys = temperature_groups([set_point(f) for f in typed], [f.temperature_c for f in typed], SETPOINT_TOLERANCE_C)
     groups: dict[tuple[Any, ...], list[Any]] = {}
-    for frame in ds:
-        kind = frame.get("frame_type")
-        if not kind:
-            continue
-        groups.setdefault((kind, frame.exposure_s, set_point(frame)), []).append(frame)
+    for frame, (how, temperature) in zip(typed, keys):
+        groups.setdefault((frame.get("frame_type"), frame.exposure_s, how, temperature), []).append(frame)
     rows = []
-    for (kind, exposure, setpoint), frames in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][2] or 0.0,
-                                                                                     kv[0][1] or 0.0)):
+    for (kind, exposure, how, temperature), frames in sorted(
+            groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][3] or 0.0, kv[0][1] or 0.0)):
+        setpoint = temperature if how == "set" else None
         temps = [f.temperature_c for f in frames if f.temperature_c is not None]
         off = [f.file for f in frames if setpoint is not None and f.temperature_c is not None
                and abs(f.temperature_c - setpoint) > SETPOINT_TOLERANCE_C]
-        rows.append({"frame_type": kind, "exposure_s": exposure, "set_temperature_c": setpoint, "n": len(frames),
+        rows.append({"frame_type": kind, "exposure_s": exposure, "set_temperature_c": setpoint,
+                     "measured_c": temperature if how == "measured" else None, "n": len(frames),
                      "temperature_c": [min(temps), max(temps)] if temps else None, "off_set_point": off})
     return rows
 

@@ -301,6 +301,12 @@ class Dsnu(Effect):
         return [Pattern("o", device.state[self.key].reshape(-1), np.arange(h * w).reshape(h, w), hyper="sigma_o")]
 
 
+#: Conditions with an exposure whose temperatures all lie within this span (°C) are at one temperature: twice
+#: :data:`forensics.io.fits.SETPOINT_TOLERANCE_C`, the band in which the frames of one set point are grouped
+#: (:func:`forensics.check.measurements.temperature_key`), so a single set point never determines T_d.
+ONE_TEMPERATURE_SPAN_C = 2.0
+
+
 def thermal_factor(ctx: FrameContext, effect: str, t_ref: float, t_double: float) -> float:
     """Exposure time × 2^((T − T_ref)/T_d): what multiplies a dark-current rate in this frame."""
     t = ctx.require("exposure_s", effect)
@@ -337,30 +343,55 @@ class DarkCurrent(Effect):
     t_ref: float = param(25.0, "°C", "reference temperature")
     t_double: float = param(7.0, "°C", "temperature increase that doubles the dark current (T_d)", free=True,
                             bounds=(1.0, 100.0))
+    t_double_held: bool = param(False, "", "True when every frame with an exposure was taken at one temperature "
+                                "(set by the checker's fit): T_d is then held at its value, not fitted")
 
     @property
     def _defect_key(self) -> str:
         return f"{self.key}.rate"
 
+    def free_params(self) -> list[str]:  # type: ignore[override]
+        return [n for n in super().free_params() if n not in self.held()]
+
+    def held(self) -> dict[str, str]:
+        if not self.t_double_held:
+            return {}
+        return {"t_double": f"every frame with an exposure was taken at one temperature (within "
+                            f"{ONE_TEMPERATURE_SPAN_C:g} °C): T_d held at {self.t_double:g} °C, not fitted, and the "
+                            f"rate is the one at T_ref = {self.t_ref:g} °C; frames at a second set point determine T_d"}
+
     def fit(self, evidence: Any) -> "DarkCurrent":
         """The checker's bespoke start: the reference temperature moved into the data when it lies outside the
-        temperatures of the dark frames with an exposure (to their exposure-weighted mean, rounded to 1 °C).
+        temperatures of the dark frames with an exposure (to their exposure-weighted mean, rounded to 1 °C), and
+        T_d held (:meth:`held`) when every condition with an exposure lies within :data:`ONE_TEMPERATURE_SPAN_C`.
 
-        Why: the rate is fitted at ``t_ref``; a cooled CCD measured at −10 and −5 °C against the default 25 °C
-        has its rate extrapolated 30 °C, where it and T_d trade off almost exactly (correlation > 0.999: both
-        reported as not identifiable although the data determine them).  Where ``t_ref`` lies among the data's
-        temperatures it is kept (the rate then means what the user set it to mean)."""
+        Why the reference: the rate is fitted at ``t_ref``; a cooled CCD measured at −10 and −5 °C against the
+        default 25 °C has its rate extrapolated 30 °C, where it and T_d trade off almost exactly (correlation
+        > 0.999: both reported as not identifiable although the data determine them).  Where ``t_ref`` lies
+        among the data's temperatures it is kept (the rate then means what the user set it to mean).
+
+        Why T_d is held: frames at one set point differ only by the thermistor's wander (a few hundredths to
+        tenths of a degree between conditions); a T_d fitted from that rests on the readings being exact and on
+        nothing else changing between the exposures (a series at one set point, −15 °C, gave "T_d 5.13 ± 0.63
+        °C" from conditions whose mean readings differ by hundredths of a degree: not a measured law)."""
         from forensics.io.dataset import is_dark_subject
 
         groups = [g for g in getattr(getattr(evidence, "meas", None), "groups", [])
-                  if is_dark_subject(g.subject) and g.temperature_c is not None and (g.exposure_s or 0) > 0]
-        if not groups:
-            return self
-        temps = np.array([g.temperature_c for g in groups], float)
-        if temps.min() - 1.0 <= self.t_ref <= temps.max() + 1.0:
-            return self
-        weights = np.array([g.exposure_s * g.n for g in groups], float)
-        return replace(self, t_ref=float(np.round(np.average(temps, weights=weights))))
+                  if g.temperature_c is not None and (g.exposure_s or 0) > 0]
+        out = self
+        if groups:
+            temps = np.array([g.temperature_c for g in groups], float)
+            held = bool(temps.max() - temps.min() <= ONE_TEMPERATURE_SPAN_C)
+            if held != out.t_double_held:
+                out = replace(out, t_double_held=held)
+        dark = [g for g in groups if is_dark_subject(g.subject)]
+        if not dark:
+            return out
+        temps = np.array([g.temperature_c for g in dark], float)
+        if temps.min() - 1.0 <= out.t_ref <= temps.max() + 1.0:
+            return out
+        weights = np.array([g.exposure_s * g.n for g in dark], float)
+        return replace(out, t_ref=float(np.round(np.average(temps, weights=weights))))
 
     def realize(self, device: Device, rng: np.random.Generator) -> None:
         device.state[self.key] = (self.sigma_rate * rng.standard_normal(device.model.shape)).astype(np.float32)

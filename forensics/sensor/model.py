@@ -313,6 +313,12 @@ class Effect:
                 out[kind] += np.sum(cat.onset[sel][:, None] <= times[None, :], axis=0)
         return {k: v / draws for k, v in out.items()}
 
+    def held(self) -> dict[str, str]:
+        """Free parameters this effect holds at their value for the data :meth:`fit` saw (they are then left out
+        of :meth:`free_params`), each with why those data cannot determine it; the check reports them as not
+        identifiable with that reason.  Default: none."""
+        return {}
+
     def fit(self, evidence: Evidence) -> "Effect":
         """Bespoke estimation of :attr:`self_fitted` parameters from the checker's evidence.
 

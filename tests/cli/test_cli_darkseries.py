@@ -100,3 +100,54 @@ def test_manifest_accepts_bias_exposure_zero(series, cli_json, tmp_path):
     (tmp_path / "manifest.csv").write_text("\n".join(rows) + "\n")
     out = cli_json("info", tmp_path, "--allow-outside")
     assert out["n_images"] == 3 and out["conditions"][0]["exposure_s"] == 0.0
+
+
+def test_a_law_of_another_binning_is_refused(series, cli, cli_json, tmp_path):
+    """A law saved from unbinned frames (XBINNING 1) is refused on a 2×2-binned series, in one line naming the law
+    file and both binnings (a binned pixel sums four pixels' dark charge: the law's rate classes mean other
+    pixels); a law file written before the binning was kept still loads, with a warning that it cannot be checked;
+    one --doubling holds at any binning."""
+    folder, _ = series
+    law = tmp_path / "law.json"
+    cli_json("defects", "detect", folder, "--rate-threshold", "1", "--t-ref", "-10", "--save-law", law,
+             "--workers", "1", "--quiet")
+    assert json.loads(law.read_text())["binning"] == [1, 1]
+    binned = tmp_path / "binned"
+    make_dark_series(binned, 12, DarkSeriesDesign(shape=(32, 48), setpoints=(-5.0,), binning=2))
+    code, _, err = cli("defects", "detect", binned, "--rate-threshold", "1", "--t-ref", "-10", "--law", law,
+                       "--workers", "1")
+    assert code == 3 and len(err.strip().splitlines()) == 1
+    assert str(law) in err and "1×1" in err and "2×2" in err
+    old = tmp_path / "old-law.json"
+    obj = json.loads(law.read_text())
+    del obj["binning"]
+    old.write_text(json.dumps(obj))
+    code, _, err = cli("defects", "detect", binned, "--rate-threshold", "1", "--t-ref", "-10", "--law", old,
+                       "--workers", "1", "--quiet")
+    assert code == 0 and "cannot check that the law was fitted on frames of this binning" in err
+    code, _, err = cli("defects", "detect", binned, "--rate-threshold", "1", "--t-ref", "-10", "--doubling", "6",
+                       "--workers", "1", "--quiet")
+    assert code == 0 and "binning" not in err
+
+
+def test_a_series_mixing_binnings_is_refused(series, cli, tmp_path):
+    folder, _ = series
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for path in folder.glob("*.fits"):
+        (mixed / path.name).symlink_to(path)
+    from astropy.io import fits
+
+    odd = sorted(mixed.glob("dark*.fits"))[0]
+    with fits.open(odd.resolve()) as h:
+        data, header = h[0].data.copy(), h[0].header.copy()
+    header["XBINNING"] = header["YBINNING"] = 2
+    odd.unlink()
+    fits.PrimaryHDU(data, header).writeto(odd)  # same size, another binning (a sub-frame binned on the chip)
+    fp = tmp_path / "fp.npz"
+    for command in (("info", mixed), ("defects", "detect", mixed), ("model", "check", mixed),
+                    ("fingerprint", "build", mixed, "-o", fp)):
+        code, _, err = cli(*command, "--quiet")
+        assert code == 3 and len(err.strip().splitlines()) == 1, command
+        assert odd.name in err and "2×2" in err and "1×1" in err
+    assert not fp.exists()

@@ -159,3 +159,57 @@ def test_info_names_a_truncated_frame_that_every_pixel_reader_refuses(folder, cl
     with pytest.raises(InputError, match="g-cut.fits: cannot read the image data") as err:
         [frame.load() for frame in open_dataset(folder)]
     assert "\n" not in str(err.value)
+
+
+def test_info_groups_frames_without_a_set_point_as_detect_does(tmp_path, cli):
+    """Without SET-TEMP, biases and darks at −10 and −5 °C were one row per exposure spanning both temperatures
+    ("bias 0 ? 20 −10.10 … −4.85"); info now groups them by the clusters of measured temperature that
+    ``defects detect`` uses (one function, :func:`forensics.io.dataset.temperature_groups`): the same groups."""
+    from forensics.defects.darkdetect import series_frames
+    from forensics.defects.darkseries import plan_series
+    from forensics.fixtures.darkseries import DarkSeriesDesign, make_dark_series
+
+    design = DarkSeriesDesign(shape=(8, 10), exposures=(10.0, 60.0), n_bias=3, set_temp_header=False,
+                              temperature_wander=0.1)
+    make_dark_series(tmp_path, 0, design)
+    ds = open_dataset(tmp_path)
+    rows = summarize_dataset(ds).frame_types
+    centres = sorted({r["measured_c"] for r in rows})
+    # a cluster's centre is its readings' median: within 4 wanders (0.4 °C) of the set point it was taken at
+    assert len(centres) == 2 and abs(centres[0] + 10.0) < 0.4 and abs(centres[1] + 5.0) < 0.4
+    got = {(r["frame_type"], r["exposure_s"], r["measured_c"]): r["n"] for r in rows}
+    assert got == {(kind, t, c): (3 if kind == "bias" else 1)
+                   for c in centres for kind, t in (("bias", 0.0), ("dark", 10.0), ("dark", 60.0))}
+    assert all(r["set_temperature_c"] is None and r["temperature_c"][1] - r["temperature_c"][0] < 1.0 for r in rows)
+    plan = plan_series(series_frames(ds))
+    assert sorted(plan.label(g) for g in range(len(plan.groups))) == [f"measured {c:+.1f} °C" for c in centres]
+    code, out, _ = cli("info", str(tmp_path))
+    assert code == 0 and all(out.count(f"measured {c:+.1f}") == 3 for c in centres)
+
+
+def test_binning_from_the_header_or_the_manifest(tmp_path):
+    """XBINNING/YBINNING become the column ``binning`` (a manifest may give it: ``2x2`` or ``2``); a frame that states
+    none is unknown and mixes with any; two stated binnings refuse the dataset naming a frame of each."""
+    from forensics.io.dataset import binning, common_binning
+
+    root = tmp_path / "ccd"
+    root.mkdir()
+    for i in range(3):
+        hdu = _hdu("Dark Frame", 60.0, -5.0, -5.0)
+        hdu.header["XBINNING"] = hdu.header["YBINNING"] = 1
+        hdu.writeto(root / f"d{i}.fits")
+    _hdu("Dark Frame", 60.0, -5.0, -5.0).writeto(root / "unstated.fits")
+    ds = open_dataset(root)
+    assert [binning(f) for f in ds] == [(1, 1), (1, 1), (1, 1), None]
+    assert ds.binning() == (1, 1) and ds.shape() == (8, 10)
+    (root / "manifest.csv").write_text("file,binning\nd0.fits,\nd1.fits,2\nd2.fits,\nunstated.fits,\n")
+    ds = open_dataset(root)
+    with pytest.raises(InputError) as err:
+        ds.shape()
+    msg = str(err.value)
+    assert msg.startswith(str(root / "d1.fits")) and "binned 2×2" in msg
+    assert "d0.fits and 1 more frames are binned 1×1" in msg
+    assert common_binning([("a", None), ("b", None)]) is None
+    (root / "manifest.csv").write_text("file,binning\nd1.fits,2 by 2\n")
+    with pytest.raises(InputError, match="d1.fits: binning '2 by 2' is not a binning"):
+        open_dataset(root).binning()
