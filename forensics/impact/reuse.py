@@ -29,20 +29,21 @@ short of computing it proves it unchanged); what is saved is the feature extract
 """
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from forensics._shared.digest import content_digest
 from forensics._shared.plugins import load_class
 from forensics.impact.matchers import BUILTIN_MATCHERS, compare_all
+from forensics.impact.segment.memo import StepMemo
+from forensics.impact.segment.segmenter import Segmenter
 
 __all__ = ["ScoredPairs", "band_encoder", "best_base", "encode_reusing", "fill_pairs", "fill_upper",
-           "template_digest", "unchanged", "upper_blocks", "upper_entries_computed"]
+           "segment_reusing", "step_segmenters", "template_digest", "unchanged", "upper_blocks",
+           "upper_entries_computed"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,49 +64,11 @@ def template_digest(template: Any) -> bytes | None:
 
     Known: None, bool, int, float (its exact bits), complex, str, bytes, numpy arrays and scalars (dtype,
     shape, strides and bytes; object arrays are unknown), tuples, lists, dicts (in their order) and dataclass
-    instances (their class and every attribute).  Two templates with the same digest are equal value by value,
-    in the same types and memory layout, so a deterministic comparator gives them the same score.
+    instances (their class and every attribute) (:func:`~forensics._shared.digest.content_digest`).  Two
+    templates with the same digest are equal value by value, in the same types and memory layout, so a
+    deterministic comparator gives them the same score.
     """
-    digest = hashlib.sha256()
-    return digest.digest() if _feed(digest, template) else None
-
-
-def _feed(digest: Any, value: Any) -> bool:
-    """Add ``value`` to ``digest`` with its type; False when a part of it is of an unknown type."""
-    tag = f"{type(value).__module__}.{type(value).__qualname__}|".encode()
-    digest.update(tag)
-    if isinstance(value, (np.ndarray, np.generic)):
-        a = np.asarray(value)
-        if a.dtype.hasobject:
-            return False
-        digest.update(f"{a.dtype.str}{a.shape}{a.strides}".encode())
-        digest.update(np.ascontiguousarray(a).tobytes())
-        return True
-    if value is None or isinstance(value, (bool, int, str)):
-        digest.update(repr(value).encode() + b";")
-        return True
-    if isinstance(value, float):
-        digest.update(struct.pack("<d", value))   # the exact bits (repr would merge NaN payloads)
-        return True
-    if isinstance(value, complex):
-        digest.update(struct.pack("<dd", value.real, value.imag))
-        return True
-    if isinstance(value, (bytes, bytearray)):
-        digest.update(f"{len(value)}:".encode() + bytes(value))
-        return True
-    if isinstance(value, (tuple, list)):
-        digest.update(f"{len(value)}[".encode())
-        return all(_feed(digest, item) for item in value)
-    if isinstance(value, dict):
-        digest.update(f"{len(value)}{{".encode())
-        return all(_feed(digest, k) and _feed(digest, v) for k, v in value.items())
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        # Every attribute, not only the fields: a cached value stored on the instance is content too.
-        state = dict(vars(value)) if hasattr(value, "__dict__") else {}
-        state.update({f.name: getattr(value, f.name) for f in dataclasses.fields(value)})
-        digest.update(f"{len(state)}(".encode())
-        return all(_feed(digest, k) and _feed(digest, state[k]) for k in sorted(state))
-    return False
+    return content_digest(template)
 
 
 def band_encoder(matcher: Any) -> bool:
@@ -134,6 +97,30 @@ def encode_reusing(matcher: Any, image: np.ndarray, before: tuple[bytes | None, 
     if key is not None and before is not None and before[0] == key:
         return key, before[1], True
     return key, matcher.encode_texture(*band), False
+
+
+def step_segmenters(matchers: Sequence[Any]) -> list[Segmenter]:
+    """The distinct built-in :class:`~forensics.impact.segment.Segmenter` objects of the :func:`band_encoder`
+    matchers, in the matchers' order: the segmentations :func:`segment_reusing` runs."""
+    out: list[Segmenter] = []
+    for matcher in matchers:
+        segmenter = getattr(matcher, "segmenter", None)
+        if band_encoder(matcher) and type(segmenter) is Segmenter and all(segmenter is not s for s in out):
+            out.append(segmenter)
+    return out
+
+
+def segment_reusing(segmenter: Segmenter, image: np.ndarray, before: dict[bytes, Any] | None) -> StepMemo:
+    """Segment ``image`` (into ``segmenter``'s one-image cache, where the matchers' encodings find it), reusing
+    the costly steps whose inputs are byte-identical to those recorded in ``before``
+    (:class:`~forensics.impact.segment.memo.StepMemo`: the same segmentation, bit for bit); the memo, whose
+    ``entries`` are this image's steps for the next age and ``hits`` the steps reused.
+
+    ``before`` is the step record of the same source image at the previous computed age (None: none).
+    """
+    memo = StepMemo(before)
+    segmenter.segment(image, memo=memo)
+    return memo
 
 
 def unchanged(now: Sequence[bytes | None], before: Sequence[bytes | None]) -> np.ndarray:

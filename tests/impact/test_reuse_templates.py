@@ -88,10 +88,11 @@ def test_real_eyes_give_the_same_result_with_every_reuse_and_with_none(tmp_path)
             for reuse in (True, False)}
     fast, slow = runs[True], runs[False]
     assert fast.reused_templates > 0 and slow.reused_templates == 0 and fast.reused_units > 0
+    assert fast.reused_steps > 0 and slow.reused_steps == 0
     a, b = fast.to_dict(), slow.to_dict()
     for d in (a, b):
         for how in ("elapsed_s", "resumed_units", "reused_units", "computed_pairs", "copied_pairs",
-                    "reused_templates"):
+                    "reused_templates", "reused_steps"):
             d.pop(how)
     assert a == b
     for ua, ub in zip(fast.units, slow.units):
