@@ -54,6 +54,7 @@ from forensics.impact.segment.common import (
 )
 from forensics.impact.segment.edges import edges_and_gradient, find_eyelid
 from forensics.impact.segment.memo import StepMemo, remembered
+from forensics.impact.segment.morphology import fill_holes, opening
 
 #: CAHT's darkness threshold after the 2 %/4 % luminance adjustment (a 3×3 sum saturating at 255 stays below
 #: 255 only if the mean is below 28).
@@ -137,8 +138,8 @@ def segment_caht(
     upper_lid = lower_lid = None
     if eyelids:
         ey, ex, gy, gx = edges_and_gradient(filled, max(1.0, 0.008 * side), (0.85, 0.93))
-        upper_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, True, lid_curvature, lid_support)
-        lower_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, False, lid_curvature, lid_support)
+        upper_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, True, lid_curvature, lid_support, memo)
+        lower_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, False, lid_curvature, lid_support, memo)
     reason = "; ".join(r for r in reasons if r)
     return Segmentation(pupil=pupil, iris=iris, ok=not reason, quality=float(min(p_support, l_support)),
                         reason=reason, upper_lid=upper_lid, lower_lid=lower_lid, method="caht")
@@ -151,8 +152,7 @@ def dark_region(img: np.ndarray) -> np.ndarray:
 
     dark = stretch(img, 0.02, 0.04) < DARK
     radius = max(1, round(0.01 * image_size(img.shape)))
-    dark = ndimage.binary_opening(dark, structure=disk(radius))
-    return ndimage.binary_fill_holes(dark)
+    return fill_holes(opening(dark, disk(radius)))
 
 
 def find_pupil(img: np.ndarray, min_pupil: float = 0.025, n_candidates: int = 4, memo: StepMemo | None = None

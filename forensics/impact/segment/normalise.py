@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from forensics.impact.segment.common import Segmentation, as_float, ray_to_ellipse
+from forensics.impact.segment.morphology import grow_square
 
 
 def _ray_to_circle(origin: tuple[float, float], circle, theta: np.ndarray) -> np.ndarray:
@@ -94,14 +95,7 @@ def _occlusion_mask(texture: np.ndarray, usable: np.ndarray, k: float, smooth: t
         # Connected to the outer boundary along each column: cumulative AND from the last row inwards.
         occluded = np.flip(np.logical_and.accumulate(np.flip(suspect, 0), axis=0), 0)
     # The boundary of an eyelid is a mixed region: grow the occlusion by one sample in each direction.
-    return _grown(occluded, 3) if occluded.any() else occluded
-
-
-def _grown(mask: np.ndarray, size: int) -> np.ndarray:
-    """``mask`` dilated by a ``size × size`` square (nothing beyond the edges): the binary dilation with that
-    structure, computed as two 1-D running maxima (a square is separable), several times faster."""
-    return ndimage.maximum_filter(mask.view(np.uint8), size=size, mode="constant", cval=0).view(bool)
-
+    return grow_square(occluded, 3) if occluded.any() else occluded
 
 
 def normalise(
@@ -161,7 +155,7 @@ def normalise(
     # Specular reflections: bright pixels grown by 2 px (their halo is bright too), looked up at the nearest pixel.
     bright = img >= reflection * full
     if bright.any():
-        bright = _grown(bright, 5)
+        bright = grow_square(bright, 5)
         iy = np.clip(np.rint(yc).astype(np.intp), 0, h - 1)
         ix = np.clip(np.rint(xc).astype(np.intp), 0, w - 1)
         spec = bright[iy, ix] & inside
