@@ -123,14 +123,24 @@ def _polar_search(prof: np.ndarray, ang: np.ndarray, rs: np.ndarray, dr: float, 
     row0 = (np.arange(ang.size) * rs.size)[None, :, None]
 
     def score(dxs: np.ndarray, dys: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        # The operations of ρ = d·o + √((d·o)² − |o|² + r²), the position on the ray and the linear
+        # interpolation, in place on few buffers (the same operations in the same order: the same bits).
         proj = dxs[:, None] * cos[None, :] - dys[:, None] * sin[None, :]                 # (centres, rays)
         base = proj * proj - (dxs * dxs + dys * dys)[:, None]
-        disc = base[:, :, None] + (radii * radii)[None, None, :]                         # (centres, rays, radii)
-        pos = (proj[:, :, None] + np.sqrt(np.maximum(disc, 0.0)) - rs[0]) / dr
-        i0 = np.clip(np.floor(pos).astype(np.int64), 0, rs.size - 2)
-        frac = np.clip(pos - i0, 0.0, 1.0)
+        pos = np.add(base[:, :, None], (radii * radii)[None, None, :])                   # (centres, rays, radii)
+        np.maximum(pos, 0.0, out=pos)
+        np.sqrt(pos, out=pos)
+        np.add(proj[:, :, None], pos, out=pos)
+        pos -= rs[0]
+        pos /= dr
+        i0 = np.floor(pos).astype(np.int64)
+        np.clip(i0, 0, rs.size - 2, out=i0)
+        frac = np.subtract(pos, i0)
+        np.clip(frac, 0.0, 1.0, out=frac)
         i0 += row0
-        val = flat[i0] * (1 - frac) + flat[i0 + 1] * frac
+        val = np.multiply(np.take(flat, i0), np.subtract(1, frac))                       # float32 × float64
+        i0 += 1
+        val += np.multiply(np.take(flat, i0), frac, out=frac)
         val[(pos < 0) | (pos > rs.size - 1)] = 0.0
         # The reduction runs over the middle axis, so numpy adds the rays in order whatever the other axes'
         # sizes: a circle scores the same bits in the coarse, local and full grids.
