@@ -23,9 +23,15 @@ is :func:`fill_upper`'s plan of ``compare_all`` calls (counted by the full-scale
 band — the texture, usability mask and segmentation :meth:`~forensics.impact.segment.Segmenter.unwrap` returns —
 and ``encode_texture`` is a deterministic function of those three alone (no random draw, no state).  So when an
 aged image's band is byte-identical to the band of the same source image at the sensor's previous computed age
-(the digests agree), the template *is* that age's template and its encoding is skipped.  The segmentation and the
-unwrapping are still computed (a defect anywhere can move the segmentation's whole-image thresholds, so nothing
-short of computing it proves it unchanged); what is saved is the feature extraction.
+(the digests agree), the template *is* that age's template and its encoding is skipped.  The unwrapping is still
+computed (the band's digest needs the band), and so is the segmentation, whose whole-image thresholds a defect
+anywhere can move; what is saved is the feature extraction.
+
+**And the segmentation's costly steps** (:func:`segment_reusing`): each image is segmented with a
+:class:`~forensics.impact.segment.memo.StepMemo` holding the steps of the same source image's segmentation at the
+previous computed age.  The cheap steps run; a costly one (a Hough transform, a limbus fit) whose inputs are
+byte-identical to the stored ones — the dark map, the voting edges, the ray profiles — returns the stored result,
+which is what it would compute.  The segmentation is the fresh one bit for bit.
 """
 from __future__ import annotations
 
