@@ -409,6 +409,8 @@ class _Encoded:
     templates: dict[str, list[Any]]
     bands: dict[str, list[bytes | None]]
     steps: list[tuple[dict[bytes, Any], ...]] | None = None
+    #: The age index these templates were made at (their images are re-aged to compare pixels with the next age's).
+    age: int | None = None
 
 
 @dataclass(frozen=True)
@@ -576,8 +578,10 @@ def _failed(templates: Sequence[Any]) -> np.ndarray:
     return np.array([template_failure(t) is not None for t in templates], dtype=bool)
 
 
-def _aged_images(job: _ImpactJob, s_index: int, a_index: int) -> Iterator[np.ndarray]:
-    """Every source image aged by sensor ``s_index`` to age ``a_index``, one at a time, in the set's order.
+def _aged_images(job: _ImpactJob, s_index: int, a_index: int, previous: int | None = None
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """Every source image aged by sensor ``s_index`` to age ``a_index``, one at a time, in the set's order, with
+    the same image aged to age index ``previous`` (None without one).
 
     The device comes from the sensor's keyed stream and image ``k``'s frame noise from its sub-stream
     ``(k, a_index)`` (:func:`~forensics.sensor.simulate.aged_exposures`): the images ``forensics simulate age``
@@ -594,7 +598,10 @@ def _aged_images(job: _ImpactJob, s_index: int, a_index: int) -> Iterator[np.nda
         if image.dtype.str != job.dtype or image.shape != job.shape:
             raise InputError(f"{path}: {image.dtype} {image.shape} differs from the first image "
                              f"({np.dtype(job.dtype)} {job.shape}); a source set must be uniform")
-        yield aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0]
+        earlier = None if previous is None else aged_exposures(
+            device, image, [device.context(spec.model.t0 + job.ages[previous])], sensor_rng, index,
+            first_step=previous)[0]
+        yield aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0], earlier
 
 
 def _aged_templates(job: _ImpactJob, s_index: int, a_index: int, before: _Encoded | None
@@ -603,9 +610,10 @@ def _aged_templates(job: _ImpactJob, s_index: int, a_index: int, before: _Encode
     steps were reused.
 
     With ``job.reuse`` a built-in matcher's template is ``before``'s (the sensor's previous computed age) where
-    the image's band is byte-identical to that age's (:func:`~forensics.impact.reuse.encode_reusing`), and each
-    segmentation reuses the costly steps whose inputs are byte-identical to ``before``'s
-    (:func:`~forensics.impact.reuse.segment_reusing`).
+    the image's band is byte-identical to that age's (:func:`~forensics.impact.reuse.encode_reusing`; not even
+    unwrapped where the pixels it reads and the segmentation are unchanged: the image is aged to ``before``'s age
+    too to compare), and each segmentation reuses the costly steps whose inputs are byte-identical to
+    ``before``'s (:func:`~forensics.impact.reuse.segment_reusing`).
     """
     templates: dict[str, list[Any]] = {m.name: [] for m in job.matchers}
     bands: dict[str, list[bytes | None]] = {m.name: [] for m in job.matchers}
@@ -613,22 +621,23 @@ def _aged_templates(job: _ImpactJob, s_index: int, a_index: int, before: _Encode
     prior_steps = getattr(before, "steps", None) if before is not None else None
     steps: list[tuple[dict[bytes, Any], ...]] = []
     reused = steps_reused = 0
-    for k, aged in enumerate(_aged_images(job, s_index, a_index)):
+    previous = getattr(before, "age", None) if job.reuse and before is not None else None
+    for k, (aged, earlier) in enumerate(_aged_images(job, s_index, a_index, previous)):
         if segmenters:
-            earlier = prior_steps[k] if prior_steps is not None else (None,) * len(segmenters)
-            memos = [segment_reusing(seg, aged, old) for seg, old in zip(segmenters, earlier)]
+            recorded = prior_steps[k] if prior_steps is not None else (None,) * len(segmenters)
+            memos = [segment_reusing(seg, aged, old) for seg, old in zip(segmenters, recorded)]
             steps.append(tuple(memo.entries for memo in memos))
             steps_reused += sum(memo.hits for memo in memos)
         for matcher in job.matchers:
             if job.reuse:
                 prior = (before.bands[matcher.name][k], before.templates[matcher.name][k]) if before else None
-                band, template, same = encode_reusing(matcher, aged, prior)
+                band, template, same = encode_reusing(matcher, aged, prior, earlier)
             else:
                 band, template, same = None, matcher.encode(aged), False
             templates[matcher.name].append(template)
             bands[matcher.name].append(band)
             reused += same
-    return _Encoded(templates, bands, steps if segmenters else None), reused, steps_reused
+    return _Encoded(templates, bands, steps if segmenters else None, a_index), reused, steps_reused
 
 
 def _digest_task(job: _ImpactJob, item: tuple[int, int]) -> bytes:
@@ -638,7 +647,7 @@ def _digest_task(job: _ImpactJob, item: tuple[int, int]) -> bytes:
     everything after them are deterministic functions of those arrays, so their results are the same.
     """
     digest = hashlib.blake2b(digest_size=20)
-    for aged in _aged_images(job, *item):
+    for aged, _ in _aged_images(job, *item):
         digest.update(f"{aged.dtype.str}{aged.shape}".encode())
         digest.update(np.ascontiguousarray(aged).tobytes())
     return digest.digest()

@@ -45,9 +45,10 @@ from forensics._shared.digest import content_digest
 from forensics._shared.plugins import load_class
 from forensics.impact.matchers import BUILTIN_MATCHERS, compare_all
 from forensics.impact.segment.memo import StepMemo
+from forensics.impact.segment.normalise import footprint
 from forensics.impact.segment.segmenter import Segmenter
 
-__all__ = ["ScoredPairs", "band_encoder", "best_base", "encode_reusing", "fill_pairs", "fill_upper",
+__all__ = ["ScoredPairs", "band_encoder", "band_untouched", "best_base", "encode_reusing", "fill_pairs", "fill_upper",
            "segment_reusing", "step_segmenters", "template_digest", "unchanged", "upper_blocks",
            "upper_entries_computed"]
 
@@ -88,21 +89,47 @@ def band_encoder(matcher: Any) -> bool:
     return type(matcher) is (load_class(builtin, "matcher") if isinstance(builtin, str) else builtin)
 
 
-def encode_reusing(matcher: Any, image: np.ndarray, before: tuple[bytes | None, Any] | None
-                   ) -> tuple[bytes | None, Any, bool]:
+def encode_reusing(matcher: Any, image: np.ndarray, before: tuple[bytes | None, Any] | None,
+                   previous: np.ndarray | None = None) -> tuple[bytes | None, Any, bool]:
     """``(band digest, template, reused)`` of ``image``: ``before``'s template when its band digest is this
     image's (see the module's note), else a new encoding.
 
-    ``before`` is ``(band digest, template)`` of the same source image at the previous computed age (None: none).
-    A matcher that is not a :func:`band_encoder` encodes the image as usual and has no band digest.
+    ``before`` is ``(band digest, template)`` of the same source image at the previous computed age (None: none),
+    ``previous`` that age's image (None: not known).  With it the band is not even unwrapped when it provably
+    equals that age's (:func:`band_untouched`).  A matcher that is not a :func:`band_encoder` encodes the image
+    as usual and has no band digest.
     """
     if not band_encoder(matcher):
         return None, matcher.encode(image), False
+    if before is not None and before[0] is not None and previous is not None and \
+            band_untouched(matcher, image, previous, getattr(before[1], "segmentation", None)):
+        return before[0], before[1], True
     band = matcher.segmenter.unwrap(image, matcher.radial, matcher.angular)
     key = template_digest(band)
     if key is not None and before is not None and before[0] == key:
         return key, before[1], True
     return key, matcher.encode_texture(*band), False
+
+
+def band_untouched(matcher: Any, image: np.ndarray, previous: np.ndarray, prior: Any) -> bool:
+    """Whether ``matcher``'s band of ``image`` is provably the band it had in ``previous`` (the same eye at the
+    previous computed age), whose template carried the segmentation ``prior``: without unwrapping it.
+
+    True when ``image`` is segmented (the shared :class:`~forensics.impact.segment.Segmenter`, cached) exactly as
+    ``prior`` (content digests equal), both are 8-bit grey images of one shape (their full scale is the dtype's),
+    and they agree on every pixel of the box :func:`~forensics.impact.segment.normalise.footprint` says the
+    unwrapping reads: the unwrapping is then a deterministic function of byte-identical inputs.  ``prior`` is
+    the segmentation the band was encoded with — the image's own, or that one marked failed for too little usable
+    iris, in which case they differ and the band is unwrapped (never wrongly reused).
+    """
+    if prior is None or image.ndim != 2 or image.shape != previous.shape or image.dtype != previous.dtype or \
+            image.dtype.itemsize != 1 or not np.issubdtype(image.dtype, np.integer):
+        return False
+    seg = matcher.segmenter.segment(image)
+    if content_digest(seg) != content_digest(prior):
+        return False
+    y0, y1, x0, x1 = footprint(seg, matcher.radial, matcher.angular, image.shape)
+    return bool(np.array_equal(image[y0:y1, x0:x1], previous[y0:y1, x0:x1]))
 
 
 def step_segmenters(matchers: Sequence[Any]) -> list[Segmenter]:

@@ -12,6 +12,7 @@ eye counter-clockwise by ``2πk/angular`` rolls the texture by ``+k`` columns.
 """
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -96,6 +97,30 @@ def _occlusion_mask(texture: np.ndarray, usable: np.ndarray, k: float, smooth: t
         occluded = np.flip(np.logical_and.accumulate(np.flip(suspect, 0), axis=0), 0)
     # The boundary of an eyelid is a mixed region: grow the occlusion by one sample in each direction.
     return grow_square(occluded, 3) if occluded.any() else occluded
+
+
+def footprint(seg: Segmentation, radial: int, angular: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """The box ``(y0, y1, x0, x1)`` holding every pixel :func:`normalise` reads for a band of this size.
+
+    :func:`normalise` reads the image at its samples (bilinear: the pixels around each), around their nearest
+    pixels (reflections grown by 2 px), and in the pupil patch of the adaptive lash threshold; beyond that only
+    the full scale, fixed by the dtype for 8-bit images.  A sample outside the image reads nothing that is used.
+    The box is all of these with a pixel to spare, clipped to the image.
+    """
+    h, w = shape
+    y, x = sample_grid(seg, radial, angular)
+    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & np.isfinite(x) & np.isfinite(y)
+    xp, yp, rp = seg.pupil
+    if not np.isfinite([xp, yp, rp]).all():
+        return 0, h, 0, w
+    r_in = max(0.6 * rp, 1.0)                           # the lash threshold's pupil patch, as normalise takes it
+    y0, y1 = int(max(yp - r_in, 0)), int(min(yp + r_in, h - 1)) + 1
+    x0, x1 = int(max(xp - r_in, 0)), int(min(xp + r_in, w - 1)) + 1
+    if inside.any():
+        ys, xs = y[inside], x[inside]
+        y0, y1 = min(y0, math.floor(ys.min()) - 4), max(y1, math.ceil(ys.max()) + 5)
+        x0, x1 = min(x0, math.floor(xs.min()) - 4), max(x1, math.ceil(xs.max()) + 5)
+    return max(y0, 0), min(y1, h), max(x0, 0), min(x1, w)
 
 
 def normalise(
