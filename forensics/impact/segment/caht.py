@@ -240,13 +240,22 @@ def limbus_image(img: np.ndarray, pupil: Circle) -> np.ndarray:
     """CAHT's contrast-adjusted image for the limbus: pupil blacked out, luminance adjusted, clipped at 0.5."""
     h, w = img.shape
     xp, yp, rp = pupil
-    yy, xx = np.mgrid[0:h, 0:w]
-    d = np.hypot(xx - xp, yy - yp).astype(np.float32)
     r2 = 1.5 * rp
+    # Only the disc of radius r2 changes: computed on its box (the same pixels in the same order, so the same
+    # ring mean and blend), the rest is the image.
+    y0, y1, x0, x1 = 0, h, 0, w
+    if np.isfinite([xp, yp, r2]).all():
+        y0, y1 = max(0, math.floor(yp - abs(r2)) - 1), min(h, math.ceil(yp + abs(r2)) + 2)
+        x0, x1 = max(0, math.floor(xp - abs(r2)) - 1), min(w, math.ceil(xp + abs(r2)) + 2)
+        y1, x1 = max(y0, y1), max(x0, x1)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    d = np.hypot(xx - xp, yy - yp).astype(np.float32)
+    box = img[y0:y1, x0:x1]
     ring = (d >= rp) & (d <= r2)
-    mean = float(img[ring].mean()) if ring.any() else float(img.mean())
+    mean = float(box[ring].mean()) if ring.any() else float(img.mean())
     alpha = np.clip((d - rp) / max(r2 - rp, 1e-6), 0.0, 1.0)
-    work = np.where(d <= r2, img * alpha + np.float32(mean) * (1 - alpha), img).astype(np.float32)
+    work = img.astype(np.float32, copy=True)
+    work[y0:y1, x0:x1] = np.where(d <= r2, box * alpha + np.float32(mean) * (1 - alpha), box)
     black = min(0.5, math.pi * r2 * r2 / (h * w))
     return np.minimum(stretch(work, black, 0.01), np.float32(0.5))
 
