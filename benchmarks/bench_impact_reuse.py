@@ -61,7 +61,14 @@ import numpy as np  # noqa: E402
 from forensics._shared.rng import keyed_generator
 from forensics.impact.experiment import parse_sensors, run_impact, upper_band, upper_entries
 from forensics.impact.matchers import compare_all, load_matchers
-from forensics.impact.reuse import ScoredPairs, best_base, template_digest, upper_entries_computed
+from forensics.impact.reuse import (
+    ScoredPairs,
+    band_untouched,
+    best_base,
+    segment_reusing,
+    template_digest,
+    upper_entries_computed,
+)
 from forensics.impact.segment import normalise
 from forensics.io.dataset import open_dataset
 from forensics.sensor.simulate import aged_exposures
@@ -196,16 +203,50 @@ def two_core_wall(first: list, chains: dict, cost: dict, workers: int = 2) -> fl
     return total
 
 
-def encode_cells(sets: dict, matchers) -> tuple[dict, dict, float, float]:
+def encode_cells(sets: dict, digests: dict, structure, matchers
+                 ) -> tuple[dict, dict, float, float, dict, dict, dict]:
     """Template and band digests of every distinct set for every algorithm; CPU s per template and per band
-    digested (the band: the texture, mask and segmentation the algorithm's template is encoded from)."""
+    digested (the band: the texture, mask and segmentation the algorithm's template is encoded from); and per
+    computed task the CPU s per image of its segmentation, the segmentation steps it reused and the share of
+    its (image, band size) rubber sheets the run unwraps — all but those whose every band of that size is
+    provably unchanged since the previous computed age (:func:`forensics.impact.reuse.band_untouched`).
+
+    The sets are segmented as the run segments them (:func:`forensics.impact.reuse.segment_reusing`): every
+    first-age task from scratch, then each sensor's chain in age order, every image starting from the steps of
+    the same image at the chain's previous computed age (the first step from the sensor's first age).
+    """
+    rep, first, chains = structure
     versions, bands, hash_cpu, band_cpu, hashed = {}, {}, 0.0, 0.0, 0
-    for key, aged in sets.items():
+    seg_task, steps_task, sheets_task, memo_of, segs_of = {}, {}, {}, {}, {}
+    segmenter = matchers[0].segmenter
+    sizes = sorted({(m.radial, m.angular) for m in matchers})
+    order = [(t, None) for t in first] + [((s, a), prev) for s, ages in chains.items()
+                                          for prev, a in zip([rep[s, 0], *[(s, b) for b in ages]], ages)]
+    for task, prev in order:
+        key = digests[task]
+        aged = sets[key]
         digs = {m.name: [] for m in matchers}
         keys = {m.name: [] for m in matchers}
-        for image in aged:
+        seg_cpu, hits, memos, segs, unwrapped = 0.0, 0, [], [], 0
+        for index, image in enumerate(aged):
+            t0 = time.process_time()
+            memo = segment_reusing(segmenter, image, memo_of[prev][index] if prev is not None else None)
+            seg_cpu += time.process_time() - t0
+            hits += memo.hits
+            memos.append(memo.entries)
+            if prev is None:
+                unwrapped += len(sizes)
+            else:
+                earlier = sets[digests[prev]][index]
+                kept = {(m.radial, m.angular) for m in matchers}
+                for m in matchers:
+                    if not band_untouched(m, image, earlier, segs_of[prev][index][m.name]):
+                        kept.discard((m.radial, m.angular))
+                unwrapped += len(sizes) - len(kept)
+            segs.append({})
             for m in matchers:
                 band = m.segmenter.unwrap(image, m.radial, m.angular)
+                segs[-1][m.name] = band[2]
                 t0 = time.process_time()
                 keys[m.name].append(template_digest(band))
                 band_cpu += time.process_time() - t0
@@ -214,9 +255,13 @@ def encode_cells(sets: dict, matchers) -> tuple[dict, dict, float, float]:
                 digs[m.name].append(template_digest(template))
                 hash_cpu += time.process_time() - t0
                 hashed += 1
+        memo_of[task], segs_of[task] = memos, segs
+        seg_task[task], steps_task[task] = seg_cpu / len(aged), hits
+        sheets_task[task] = unwrapped / (len(aged) * len(sizes))
         for name in digs:
             versions[key, name], bands[key, name] = digs[name], keys[name]
-    return versions, bands, hash_cpu / max(hashed, 1), band_cpu / max(hashed, 1)
+    return (versions, bands, hash_cpu / max(hashed, 1), band_cpu / max(hashed, 1), seg_task, steps_task,
+            sheets_task)
 
 
 def time_encoding(images, matchers) -> tuple[float, float, dict, dict]:
@@ -266,9 +311,10 @@ def time_bootstrap(seed: int) -> float:
     return time.process_time() - t0
 
 
-def check_against_run(frames, sensors_spec: str, ages, names, segmentation, seed, expected, reused: int) -> None:
+def check_against_run(frames, sensors_spec: str, ages, names, segmentation, seed, expected, reused: int,
+                      steps: int) -> None:
     """Run the experiment on the measured images (symbolic links) and compare its counts of comparisons and of
-    reused templates with the replay's."""
+    reused templates and segmentation steps with the replay's."""
     with tempfile.TemporaryDirectory(prefix="bench-reuse-") as tmp:
         root = Path(tmp)
         with open(root / "manifest.csv", "w", newline="") as fh:
@@ -282,10 +328,12 @@ def check_against_run(frames, sensors_spec: str, ages, names, segmentation, seed
         sensors = parse_sensors(sensors_spec, source.shape()[:2], 8)
         result = run_impact(source, sensors, ages, load_matchers(names, segmentation=segmentation), rng=seed,
                             n_boot=100)
-    got = (result.computed_pairs, result.copied_pairs, result.reused_templates)
-    want = (sum(v["computed"] for v in expected.values()), sum(v["copied"] for v in expected.values()), reused)
+    got = (result.computed_pairs, result.copied_pairs, result.reused_templates, result.reused_steps)
+    want = (sum(v["computed"] for v in expected.values()), sum(v["copied"] for v in expected.values()), reused,
+            steps)
     print(f"check: run_impact on these {len(frames)} images computed {got[0]} and copied {got[1]} comparisons and "
-          f"reused {got[2]} templates; the replay: {want[0]}, {want[1]} and {want[2]} -> "
+          f"reused {got[2]} templates and {got[3]} segmentation steps; the replay: {want[0]}, {want[1]}, {want[2]} "
+          f"and {want[3]} -> "
           f"{'EQUAL' if got == want else 'DIFFERENT'}")
     if got != want:
         raise SystemExit("bench_impact_reuse: the replay does not match the run")
@@ -296,10 +344,12 @@ def measure(images, sensors, ages, names, args) -> dict:
     digests, sets, digest_cpu = aged_cells(images, sensors, ages, args.seed)
     matchers = load_matchers(names, segmentation=args.segmentation)
     seg_cpu, sheet_cpu, feature_cpu, compare_cpu = time_encoding(images, matchers)
-    versions, bands, hash_cpu, band_cpu = encode_cells(sets, matchers)
+    structure = run_structure(digests, len(sensors), len(ages))
+    versions, bands, hash_cpu, band_cpu, seg_task, steps_task, sheets_task = encode_cells(sets, digests, structure,
+                                                                                         matchers)
     return {"digests": digests, "versions": versions, "bands": bands, "digest_cpu": digest_cpu, "seg_cpu": seg_cpu,
             "sheet_cpu": sheet_cpu, "feature_cpu": feature_cpu, "compare_cpu": compare_cpu, "hash_cpu": hash_cpu,
-            "band_cpu": band_cpu,
+            "band_cpu": band_cpu, "seg_task": seg_task, "steps_task": steps_task, "sheets_task": sheets_task,
             "boot_cpu": time_bootstrap(args.seed), "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "load": os.getloadavg()[0]}
 
@@ -308,7 +358,9 @@ def save_measurements(path: Path, settings: dict, m: dict) -> None:
     """The measurements as JSON (digests in hex; no image data)."""
     hexed = {**m, "digests": [[s, a, d.hex()] for (s, a), d in m["digests"].items()],
              **{part: [[k.hex(), name, [v.hex() if v is not None else None for v in vs]]
-                       for (k, name), vs in m[part].items()] for part in ("versions", "bands")}}
+                       for (k, name), vs in m[part].items()] for part in ("versions", "bands")},
+             **{part: [[s, a, v] for (s, a), v in m[part].items()]
+                for part in ("seg_task", "steps_task", "sheets_task")}}
     path.write_text(json.dumps({"settings": settings, "measurements": hexed}))
 
 
@@ -321,6 +373,8 @@ def load_measurements(path: Path, settings: dict) -> dict:
     for part in ("versions", "bands"):
         m[part] = {(bytes.fromhex(k), name): [bytes.fromhex(v) if v is not None else None for v in vs]
                    for k, name, vs in m[part]}
+    for part in ("seg_task", "steps_task", "sheets_task"):
+        m[part] = {(s, a): v for s, a, v in m[part]}
     return m
 
 
@@ -349,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
     sensors = parse_sensors(args.sensors, images[0].shape[:2], 8)
     t_start = time.process_time()
     settings = {k: str(getattr(args, k)) for k in ("images", "segmentation", "seed", "sensors", "algorithms")}
-    settings["format"] = "2"       # band digests and rubber-sheet times (files of format 1 lack them)
+    settings["format"] = "4"       # segmentation and sheets per task with their reuse (files of format 1-3 lack them)
     if args.measurements and args.measurements.is_file():
         m = load_measurements(args.measurements, settings)
         print(f"measurements read from {args.measurements} (made {m['made']})")
@@ -360,6 +414,7 @@ def main(argv: list[str] | None = None) -> int:
     digests, versions, bands = m["digests"], m["versions"], m["bands"]
     seg_cpu, sheet_cpu, feature_cpu, compare_cpu = m["seg_cpu"], m["sheet_cpu"], m["feature_cpu"], m["compare_cpu"]
     digest_cpu, hash_cpu, band_cpu, boot_cpu = m["digest_cpu"], m["hash_cpu"], m["band_cpu"], m["boot_cpu"]
+    seg_task, steps_task, sheets_task = m["seg_task"], m["steps_task"], m["sheets_task"]
     structure = run_structure(digests, len(sensors), len(ages))
     rep, first, chains = structure
     tasks, distinct = len(rep), sum(1 for t in rep if rep[t] == t)
@@ -390,7 +445,8 @@ def main(argv: list[str] | None = None) -> int:
     encoded_small = encodings(bands, digests, structure, names, n)
     if args.check:
         reused = sum(n * len(names) - sum(c.values()) for t, c in encoded_small.items() if t not in first)
-        check_against_run(frames, args.sensors, ages, names, args.segmentation, args.seed, small, reused)
+        check_against_run(frames, args.sensors, ages, names, args.segmentation, args.seed, small, reused,
+                          sum(steps_task.values()))
     big = PAPER["images"]
     draw = np.random.default_rng(args.seed).integers(n, size=big)
     drawn = {k: [v[d] for d in draw] for k, v in versions.items()}
@@ -402,6 +458,16 @@ def main(argv: list[str] | None = None) -> int:
         kept[spec.name] = f"{1 - np.mean(steps):.0%}" if steps else "-"
     print("templates reused in a chain's step (band unchanged since the previous computed age; mean over steps "
           "and algorithms): " + ", ".join(f"{k} {v}" for k, v in kept.items()))
+    seg_chain = {spec.name: np.mean([seg_task[s_index, a] for a in chains.get(s_index, [])])
+                 for s_index, spec in enumerate(sensors) if chains.get(s_index)}
+    first_seg = 1e3 * np.mean([seg_task[t] for t in first])
+    unwrapped_chain = {spec.name: np.mean([sheets_task[s_index, a] for a in chains.get(s_index, [])])
+                       for s_index, spec in enumerate(sensors) if chains.get(s_index)}
+    print("rubber sheets unwrapped in a chain's step (the rest provably unchanged; mean over steps): "
+          + ", ".join(f"{k} {v:.0%}" for k, v in unwrapped_chain.items()))
+    print(f"segmentation with the step reuse, ms CPU per image: first age {first_seg:.1f}; a chain's step (mean "
+          "over its steps): " + ", ".join(f"{k} {1e3 * v:.1f}" for k, v in seg_chain.items())
+          + f"; steps reused at the measured size: {sum(steps_task.values())}")
 
     print("| algorithm | features ms/image | compare µs/entry | pairs copied (measured set) | entries computed at "
           "2,240, share of no score reuse |")
@@ -444,15 +510,31 @@ def main(argv: list[str] | None = None) -> int:
           f"{distinct * big * sum(feature_cpu.values()) / 3600:.2f} h, band digests "
           f"{distinct * big * len(names) * band_cpu / 3600:.2f} h: {templates / 3600:.1f} h (2 cores: "
           f"{templates / 7200:.1f} h)")
-    task_cost = {t: fixed + features[t] + len(names) * big * hash_cpu * (1 if t in first else 2) + units * boot_cpu
+    # Segmentation steps: each task's segmentation costs what it measured per image with the run's step reuse
+    # (a first-age task from scratch, a chain's image from the steps of its previous computed age).
+    segmented = {t: big * seg_task[t] for t in encoded}
+    stepped = templates - distinct * segment_only + sum(segmented.values())
+    print(f"  + segmentation steps:  segmentation {sum(segmented.values()) / 3600:.2f} h instead of "
+          f"{distinct * segment_only / 3600:.2f} h: {stepped / 3600:.1f} h (2 cores: {stepped / 7200:.1f} h)")
+    # Untouched bands: the rubber sheets (and band digests) only of the (image, size) bands not provably unchanged
+    # (the pixels the sheet reads and the segmentation equal the previous computed age's).
+    unwrap_one = sheet_cpu + len(names) * band_cpu
+    unwrapping = {t: big * sheets_task[t] * unwrap_one for t in encoded}
+    untouched = stepped - distinct * big * unwrap_one + sum(unwrapping.values())
+    print(f"  + untouched bands:     rubber sheets and band digests {sum(unwrapping.values()) / 3600:.2f} h instead "
+          f"of {distinct * big * unwrap_one / 3600:.2f} h: {untouched / 3600:.1f} h (2 cores: "
+          f"{untouched / 7200:.1f} h)")
+    task_cost = {t: segmented[t] + unwrapping[t] + features[t]
+                 + len(names) * big * hash_cpu * (1 if t in first else 2) + units * boot_cpu
                  + sum(e * compare_cpu[m] for m, e in entries.items()) for t, entries in per_task.items()}
     wall = digest_all / 2 + two_core_wall(first, chains, task_cost)
     print(f"  on 2 worker processes (the first-age tasks, then one item per sensor's chain, longest first; the "
-          f"digest pass split): {wall / 3600:.1f} h (perfect halving: {templates / 7200:.1f} h)")
-    parts = {"segmentation": distinct * segment_only, "rubber sheets": distinct * big * sheet_cpu,
+          f"digest pass split): {wall / 3600:.1f} h (perfect halving: {untouched / 7200:.1f} h)")
+    sheets = sum(big * sheets_task[t] * sheet_cpu for t in encoded)
+    parts = {"segmentation": sum(segmented.values()), "rubber sheets": sheets,
              "features": sum(features.values()), "comparisons": compare_reused, "bootstrap": boot,
-             "digests (images, templates, bands)": digest_all + hashing + distinct * big * len(names) * band_cpu}
-    print("  shares of the remaining work: " + ", ".join(f"{k} {v / templates:.0%}" for k, v in parts.items()))
+             "digests (images, templates, bands)": digest_all + hashing + sum(unwrapping.values()) - sheets}
+    print("  shares of the remaining work: " + ", ".join(f"{k} {v / untouched:.0%}" for k, v in parts.items()))
     print(f"(benchmark CPU {time.process_time() - t_start:.0f} s)")
     return 0
 

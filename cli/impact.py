@@ -126,5 +126,7 @@ def summary(result) -> str:
                      f"{result.computed_pairs:,} computed")
     if result.reused_templates:
         lines.append(f"{result.reused_templates:,} templates reused from the previous age (rubber-sheet band unchanged)")
+    if result.reused_steps:
+        lines.append(f"{result.reused_steps:,} segmentation steps reused from the previous age (inputs unchanged)")
     lines.append(f"({result.elapsed_s:.1f} s)")
     return "\n".join(lines)

@@ -1,9 +1,10 @@
 """Plumbing every other subpackage uses and none of them owns: the error types the CLI maps to exit codes,
 atomic output (a file or folder appears whole or not at all), the progress convention, the exact fast
-median filter, array helpers (grey conversions, full scale), the one JSON converter, the bounds on what one
-request may allocate (:mod:`~forensics._shared.limits`), untrusted text made safe for a terminal
-(:func:`printable`) and the one way random numbers enter the toolkit (``rng`` is a Generator or an integer
-seed, see :mod:`forensics._shared.rng`).  It imports nothing else of the package.
+median filter, the exact content digest (for reuse only where provably exact), array helpers (grey
+conversions, full scale), the one JSON converter, the bounds on what one request may allocate
+(:mod:`~forensics._shared.limits`), untrusted text made safe for a terminal (:func:`printable`) and the one
+way random numbers enter the toolkit (``rng`` is a Generator or an integer seed, see
+:mod:`forensics._shared.rng`).  It imports nothing else of the package.
 """
 import lazy_loader as _lazy
 
@@ -18,6 +19,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "atomic_directory", "atomic_file", "current_umask", "mkdtemp_like_mkdir", "mkstemp_like_open",
             "refuse_existing", "refuse_inputs", "write_bytes", "write_json", "write_text",
         ],
+        "digest": ["content_digest"],
         "errors": ["ForensicsError", "InputError", "UsageError"],
         "filters": ["median_filter"],
         "jsonsafe": ["dumps", "to_jsonable"],

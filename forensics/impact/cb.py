@@ -44,8 +44,8 @@ possible); ``max_shift`` > 0 takes the best score over circular shifts of whole 
 published).
 
 Speed: the comparison is vectorised over blocks of pairs with one byte per cell; the context of every cell
-is read from padded arrays (views, no copies), and the cell scores are bit shifts summed as integers, so one
-pair and a block of pairs give exactly the same value.
+is read from padded codes laid out on one line each (every neighbour a contiguous view, no copies), and the cell
+scores are bit shifts summed as integers, so one pair and a block of pairs give exactly the same value.
 """
 from __future__ import annotations
 
@@ -114,66 +114,113 @@ def _at(padded: np.ndarray, dr: int, dc: int) -> np.ndarray:
     return padded[..., _PAD + dr:_PAD + dr + r, _PAD + dc:_PAD + dc + c]
 
 
+def _flat(padded: np.ndarray) -> np.ndarray:
+    """A :func:`_padded` ``(n, rows + 4, columns + 4)`` array as ``(n, (rows + 4)(columns + 4) + 4)``: each padded
+    code on one line, with ``_PAD`` zeros before and after (see :func:`_span`)."""
+    n = padded.shape[0]
+    out = np.zeros((n, padded[0].size + 2 * _PAD), padded.dtype)
+    out[:, _PAD:_PAD + padded[0].size] = padded.reshape(n, -1)
+    return out
+
+
+def _span(flat: np.ndarray, shape: tuple[int, int], dr: int = 0, dc: int = 0) -> np.ndarray:
+    """The neighbour ``(dr, dc)`` of every cell of the code rows, padding columns included, from a :func:`_flat`
+    array: one contiguous run of ``rows × (columns + 4)`` per code (a view).
+
+    A cell's neighbour lies ``dr (columns + 4) + dc`` places further along the line; for the code's own cells it
+    is inside their padded code (the padding is 2 wide), and the padding columns' garbage is never summed.  Long
+    contiguous runs instead of short rows make every numpy pass several times faster.
+    """
+    rows, cols = shape
+    width = cols + 2 * _PAD
+    start = _PAD + _PAD * width + dr * width + dc
+    return flat[..., start:start + rows * width]
+
+
+def _interior(span: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The code's own cells of a :func:`_span`-shaped array, ``(…, rows, columns)`` (a view)."""
+    rows, cols = shape
+    return span.reshape(*span.shape[:-1], rows, cols + 2 * _PAD)[..., _PAD:_PAD + cols]
+
+
 @dataclass(frozen=True)
 class _Stack:
-    """Templates prepared for comparison, all ``(n, rows + 4, columns + 4)`` uint8 (:func:`_padded`): the two
-    thermometer bits of the level (``level ≥ 1``, ``level ≥ 2``) and the validity (0 beyond the radial edges)."""
+    """Templates prepared for comparison, all ``(n, (rows + 4)(columns + 4) + 4)`` uint8 (:func:`_flat` of
+    :func:`_padded`): the two thermometer bits of the level (``level ≥ 1``, ``level ≥ 2``) and the validity (0
+    beyond the radial edges); ``shape`` the cells ``(rows, columns)``."""
 
     t1: np.ndarray
     t2: np.ndarray
     valid: np.ndarray
+    shape: tuple[int, int]
 
     @classmethod
     def of(cls, levels: np.ndarray, valid: np.ndarray) -> _Stack:
-        return cls(_padded((levels >= 1).view(np.uint8)), _padded((levels >= 2).view(np.uint8)),
-                   _padded(np.asarray(valid, bool).view(np.uint8)))
+        return cls(_flat(_padded((levels >= 1).view(np.uint8))), _flat(_padded((levels >= 2).view(np.uint8))),
+                   _flat(_padded(np.asarray(valid, bool).view(np.uint8))), levels.shape[1:])
 
     def rolled(self, s: int) -> _Stack:
         """The templates rotated by ``s`` cells along the angle (padding rebuilt)."""
         if s == 0:
             return self
-        return _Stack(*(_padded(np.roll(_at(x, 0, 0), s, axis=-1)) for x in (self.t1, self.t2, self.valid)))
+        rows, cols = self.shape
+        n = self.t1.shape[0]
+
+        def roll(x: np.ndarray) -> np.ndarray:
+            padded = x[:, _PAD:_PAD + (rows + 2 * _PAD) * (cols + 2 * _PAD)].reshape(n, rows + 2 * _PAD, -1)
+            return _flat(_padded(np.roll(_at(padded, 0, 0), s, axis=-1)))
+
+        return _Stack(roll(self.t1), roll(self.t2), roll(self.valid), self.shape)
 
     def take(self, i0: int, i1: int) -> _Stack:
-        return _Stack(self.t1[i0:i1], self.t2[i0:i1], self.valid[i0:i1])
+        return _Stack(self.t1[i0:i1], self.t2[i0:i1], self.valid[i0:i1], self.shape)
 
 
 def _reference_context(levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For reference codes ``(n, rows, columns)``: per context cell 1 + [its level differs] (uint8, (8, n, r, c)),
-    and per direct neighbour [its level is the same] (uint8, (4, n, r, c))."""
-    p = _padded(levels)
-    grow = np.stack([1 + (_at(p, dr, dc) != levels) for dr, dc in CONTEXT]).astype(np.uint8)
-    same = np.stack([_at(p, dr, dc) == levels for dr, dc in DIRECT]).astype(np.uint8)
+    """For reference codes ``(n, rows, columns)``: per context cell 1 + [its level differs] (uint8, (8, n, span)),
+    and per direct neighbour [its level is the same] (uint8, (4, n, span)), in :func:`_span` layout."""
+    flat, shape = _flat(_padded(levels)), levels.shape[1:]
+    centre = _span(flat, shape)
+    grow = np.stack([1 + (_span(flat, shape, dr, dc) != centre) for dr, dc in CONTEXT]).astype(np.uint8)
+    same = np.stack([_span(flat, shape, dr, dc) == centre for dr, dc in DIRECT]).astype(np.uint8)
     return grow, same
 
 
 def _scores(a: _Stack, grow: np.ndarray, same: np.ndarray, b: _Stack, min_cells: int) -> np.ndarray:
     """Context-based similarities of references ``a`` (with their :func:`_reference_context`) against probes ``b``.
 
-    Works on the padded arrays, so every neighbour is a view; the per-cell scores ``2^(2 + c)`` and
-    ``2^(1 + p)`` are bit shifts of the match and mismatch indicators, summed exactly as integers.
+    Works on the :func:`_flat` arrays, so every neighbour is a contiguous view (:func:`_span`); the per-cell
+    scores ``2^(2 + c)`` and ``2^(1 + p)`` are bit shifts of the match and mismatch indicators, summed exactly as
+    integers over the code's own cells.
     """
+    shape = a.shape
     # Level difference |a − b| = number of differing thermometer bits.
     diff = (a.t1[:, None] ^ b.t1[None, :]) + (a.t2[:, None] ^ b.t2[None, :])
     valid = a.valid[:, None] & b.valid[None, :]
-    same_level = diff == 0
-    match = (same_level & valid.view(bool)).view(np.uint8)
-    mismatch = (~same_level & valid.view(bool)).view(np.uint8)
+    match = ((diff == 0) & valid.view(bool)).view(np.uint8)
+    mismatch = valid - match                            # valid and not equal (match ≤ valid: no wrap-around)
     diff *= valid                                       # level difference where both are valid (0 where equal)
-    centre_match, centre_mismatch = _at(match, 0, 0), _at(mismatch, 0, 0)
+    # The code's own cells (the padding columns of the span are neighbours only, never summed).
+    own = np.zeros((shape[0], shape[1] + 2 * _PAD), np.uint8)
+    own[:, _PAD:_PAD + shape[1]] = 1
+    own = own.ravel()
+    centre_match, centre_mismatch = _span(match, shape) * own, _span(mismatch, shape) * own
     term = np.empty(centre_match.shape, np.uint8)
     context = np.full(centre_match.shape, 2, np.uint8)  # the exponent 2 + c
     for k, (dr, dc) in enumerate(CONTEXT):
-        np.multiply(_at(match, dr, dc), grow[k][:, None], out=term)
+        np.multiply(_span(match, shape, dr, dc), grow[k][:, None], out=term)
         context += term
     penalty = np.ones(centre_match.shape, np.uint8)     # the exponent 1 + p
     for k, (dr, dc) in enumerate(DIRECT):
-        np.multiply(_at(mismatch, dr, dc), same[k][:, None], out=term)
+        np.multiply(_span(mismatch, shape, dr, dc), same[k][:, None], out=term)
         penalty += term
-        penalty += _at(diff, dr, dc)
-    positive = np.left_shift(centre_match, context, dtype=np.uint32).sum(axis=(-2, -1), dtype=np.uint64)
-    negative = np.left_shift(centre_mismatch, penalty, dtype=np.uint32).sum(axis=(-2, -1), dtype=np.uint64)
-    n_valid = _at(valid, 0, 0).sum(axis=(-2, -1), dtype=np.int64)
+        penalty += _span(diff, shape, dr, dc)
+    # Exact integer sums: a cell adds at most 2^(2 + 16) (or subtracts 2^(1 + 12)), so below 2^14 cells uint32
+    # cannot overflow.
+    total = np.uint32 if shape[0] * shape[1] < 2**14 else np.uint64
+    positive = np.left_shift(centre_match, context, dtype=np.uint32).sum(axis=-1, dtype=total)
+    negative = np.left_shift(centre_mismatch, penalty, dtype=np.uint32).sum(axis=-1, dtype=total)
+    n_valid = _interior(_span(valid, shape), shape).sum(axis=(-2, -1), dtype=np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
         score = (positive.astype(np.float64) - negative.astype(np.float64)) / (n_valid * 2.0 ** _NORM)
     return np.where(n_valid >= max(min_cells, 1), score, UNCOMPARABLE)

@@ -41,7 +41,7 @@ import numpy as np
 from scipy.fft import dct as _dct
 
 from forensics._shared.errors import InputError, UsageError
-from forensics.impact.iriscode import IrisCode, hamming_all, hamming_distance
+from forensics.impact.iriscode import IrisCode, hamming_distance, hamming_planes
 from forensics.impact.segment import Segmentation, Segmenter
 from forensics.impact.texture import fill_unusable
 
@@ -208,16 +208,24 @@ class DctMatcher:
         return best
 
     def compare_all(self, templates_a: Sequence[DctTemplate], templates_b: Sequence[DctTemplate]) -> np.ndarray:
-        """Vectorised :meth:`compare` of every pair (bit-packed, :func:`~forensics.impact.iriscode.hamming_all`
-        at each rotation and plane); equal to the loop exactly."""
+        """Vectorised :meth:`compare` of every pair (bit-packed, :func:`~forensics.impact.iriscode.hamming_planes`
+        per rotation pair: every plane at every shift); equal to the loop exactly."""
         out = np.ones((len(templates_a), len(templates_b)))
         if len(templates_a) == 0 or len(templates_b) == 0:
             return out
         ta = [self._check(t) for t in templates_a]
         tb = [self._check(t) for t in templates_b]
         need = self._min_valid_bits(ta[0])
-        for ka, kb, q in self._rotations():
-            planes = [hamming_all([t.codes[ka][c] for t in ta], [t.codes[kb][c].shifted(q) for t in tb], 0, need)
-                      for c in range(len(self.coefficients))]
-            np.minimum(out, self._product_of_sum(planes), out=out)
+        # Per rotation pair every plane at every whole-patch shift at once (hamming_planes: the planes share one
+        # mask, so the valid bits are counted once, and each code is packed once per pair, not per shift); rows
+        # in blocks so that the (shifts, planes, rows, columns) distances stay below ~64 MB.
+        shifts = list(range(-self.max_shift, self.max_shift + 1))
+        rows = max(1, 2**23 // (len(shifts) * len(self.coefficients) * len(tb)))
+        for i0 in range(0, len(ta), rows):
+            best = out[i0:i0 + rows]
+            for ka, kb in dict.fromkeys((ka, kb) for ka, kb, _ in self._rotations()):
+                planes = hamming_planes([t.codes[ka] for t in ta[i0:i0 + rows]], [t.codes[kb] for t in tb], shifts,
+                                        need)
+                for k in range(len(shifts)):
+                    np.minimum(best, self._product_of_sum(list(planes[k])), out=best)
         return out

@@ -39,7 +39,9 @@ each sensor's later distinct ages run in age order in one work item holding only
 chain also carries the previous age's templates with the digests of their rubber-sheet bands: a built-in
 matcher's template whose band is byte-identical to that age's is that template (its encoding is a deterministic
 function of the band; :func:`~forensics.impact.reuse.encode_reusing`), so only the segmentation and the unwrapping
-are recomputed for it; ``reused_templates`` counts them.
+are recomputed for it; ``reused_templates`` counts them.  And each image's segmentation reuses the costly steps
+(Hough transforms, limbus fits) whose inputs are byte-identical to those of the same eye's previous segmentation
+(:class:`~forensics.impact.segment.memo.StepMemo`, exact by construction); ``reused_steps`` counts them.
 
 Memory of the score reuse: a work item holds the scores of the previous and the current age, n (n − 1) / 2
 float64 per matcher and protocol (2,240 images: 20 MB each, 480 MB at most for six matchers and both
@@ -74,7 +76,16 @@ from forensics._shared.parallel import Checkpoint, Executor, in_process, resolve
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike, as_generator, keyed_generator, seed_record
 from forensics.impact.matchers import Matcher, compare_all, template_failure
-from forensics.impact.reuse import ScoredPairs, best_base, encode_reusing, fill_pairs, fill_upper, template_digest
+from forensics.impact.reuse import (
+    ScoredPairs,
+    best_base,
+    encode_reusing,
+    fill_pairs,
+    fill_upper,
+    segment_reusing,
+    step_segmenters,
+    template_digest,
+)
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
 from forensics.sensor.presets import PRESETS, preset
@@ -262,6 +273,9 @@ class ImpactResult:
     #: Templates taken from the sensor's previous computed age because their band (texture, mask and
     #: segmentation) was byte-identical (:func:`~forensics.impact.reuse.encode_reusing`): encodings skipped.
     reused_templates: int = 0
+    #: Costly segmentation steps whose result was taken from the same eye's previous age because their inputs
+    #: were byte-identical (:class:`~forensics.impact.segment.memo.StepMemo`): Hough transforms and limbus fits.
+    reused_steps: int = 0
     #: Segmentation method of each matcher that segments (``matcher.segmenter.method``), None for the others.
     segmentations: dict[str, str | None] = field(default_factory=dict)
 
@@ -289,7 +303,8 @@ class ImpactResult:
                 "trends": [t.to_dict() for t in self.trends], "spreads": [s.to_dict() for s in self.spreads],
                 "elapsed_s": self.elapsed_s, "resumed_units": self.resumed_units, "reused_units": self.reused_units,
                 "computed_pairs": self.computed_pairs, "copied_pairs": self.copied_pairs,
-                "reused_templates": self.reused_templates, "segmentations": dict(self.segmentations), "forensics_version": __version__}
+                "reused_templates": self.reused_templates, "reused_steps": self.reused_steps,
+                "segmentations": dict(self.segmentations), "forensics_version": __version__}
 
 
 def _classes(source: Dataset) -> tuple[np.ndarray, list[str]]:
@@ -386,10 +401,16 @@ def _stream_root(rng: RngLike) -> int | np.random.SeedSequence:
 
 @dataclass(frozen=True)
 class _Encoded:
-    """The templates of one (sensor, age) and the digests of their bands, per matcher name, one per image."""
+    """The templates of one (sensor, age) and the digests of their bands, per matcher name, one per image; and
+    per image the segmentation steps of each of the matchers' segmenters
+    (:func:`~forensics.impact.reuse.step_segmenters`), which the next age's segmentations start from (None
+    without reuse)."""
 
     templates: dict[str, list[Any]]
     bands: dict[str, list[bytes | None]]
+    steps: list[tuple[dict[bytes, Any], ...]] | None = None
+    #: The age index these templates were made at (their images are re-aged to compare pixels with the next age's).
+    age: int | None = None
 
 
 @dataclass(frozen=True)
@@ -450,24 +471,30 @@ def _chain_task(job: _ImpactJob, s_index: int) -> dict[str, Any]:
     The templates are reused the same way: each age starts from the previous one's (:class:`_Encoded`; the
     first from ``job.firsts``), and a template whose band is unchanged is not encoded again.
 
-    Returns ``{"cells": [[age index, [UnitResult, …]], …], "computed": n, "copied": n, "templates_reused": n}``.
+    The segmentations too: each image's starts from the steps of the same image's previous segmentation
+    (:func:`~forensics.impact.reuse.segment_reusing`).
+
+    Returns ``{"cells": [[age index, [UnitResult, …]], …], "computed": n, "copied": n, "templates_reused": n,
+    "steps_reused": n}``.
     """
     pairs = _pairs(job.labels, job.impostors, job.root)
     bases = (job.starts or {}).get(s_index, {})
     before = (job.firsts or {}).get(s_index)
-    cells, computed, copied, reused = [], 0, 0, 0
+    cells, computed, copied, reused, steps = [], 0, 0, 0, 0
     for a_index in (job.chains or {}).get(s_index, []):
-        units, before, bases, done, same, kept = _score_cell(job, s_index, a_index, pairs, bases, before)
+        units, before, bases, done, same, (kept, recalled) = _score_cell(job, s_index, a_index, pairs, bases,
+                                                                         before)
         cells.append([a_index, units])
-        computed, copied, reused = computed + done, copied + same, reused + kept
-    return {"cells": cells, "computed": computed, "copied": copied, "templates_reused": reused}
+        computed, copied, reused, steps = computed + done, copied + same, reused + kept, steps + recalled
+    return {"cells": cells, "computed": computed, "copied": copied, "templates_reused": reused,
+            "steps_reused": steps}
 
 
 def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.ndarray, np.ndarray, bool],
                 bases: dict[str, list[ScoredPairs]], before: _Encoded | None
-                ) -> tuple[list[UnitResult], _Encoded, dict[str, list[ScoredPairs]], int, int, int]:
+                ) -> tuple[list[UnitResult], _Encoded, dict[str, list[ScoredPairs]], int, int, tuple[int, int]]:
     """Units of one (sensor, age), its templates, its scores (with ``job.reuse``), the pairs computed / copied and
-    the templates reused from ``before`` (:func:`_aged_templates`).
+    the templates and segmentation steps reused from ``before`` (:func:`_aged_templates`).
 
     With ``job.reuse`` every (matcher, protocol) starts from the stored scores (``bases``: the previous age's of
     this sensor, and for ``enrol-0`` this age's ``same-age`` scores) that leave the fewest pairs to compute, and
@@ -475,7 +502,7 @@ def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.nda
     """
     i, j, sampled = pairs
     spec, age = job.sensors[s_index], job.ages[a_index]
-    encoded, reused = _aged_templates(job, s_index, a_index, before)
+    encoded, reused, steps_reused = _aged_templates(job, s_index, a_index, before)
     templates = encoded.templates
     enrol = templates if age == 0.0 else (job.enrol or {}).get(s_index)
     units, made_all, computed = [], {}, 0
@@ -513,7 +540,7 @@ def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.nda
                                     int((~keep).sum())))
         made_all[matcher.name] = made
     total = i.size * len(job.matchers) * len(job.protocols)
-    return units, encoded, made_all, computed, total - computed, reused
+    return units, encoded, made_all, computed, total - computed, (reused, steps_reused)
 
 
 def _reused_scores(matcher: Matcher, gallery: Sequence[Any], probe: Sequence[Any],
@@ -551,8 +578,10 @@ def _failed(templates: Sequence[Any]) -> np.ndarray:
     return np.array([template_failure(t) is not None for t in templates], dtype=bool)
 
 
-def _aged_images(job: _ImpactJob, s_index: int, a_index: int) -> Iterator[np.ndarray]:
-    """Every source image aged by sensor ``s_index`` to age ``a_index``, one at a time, in the set's order.
+def _aged_images(job: _ImpactJob, s_index: int, a_index: int, previous: int | None = None
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """Every source image aged by sensor ``s_index`` to age ``a_index``, one at a time, in the set's order, with
+    the same image aged to age index ``previous`` (None without one).
 
     The device comes from the sensor's keyed stream and image ``k``'s frame noise from its sub-stream
     ``(k, a_index)`` (:func:`~forensics.sensor.simulate.aged_exposures`): the images ``forensics simulate age``
@@ -569,30 +598,46 @@ def _aged_images(job: _ImpactJob, s_index: int, a_index: int) -> Iterator[np.nda
         if image.dtype.str != job.dtype or image.shape != job.shape:
             raise InputError(f"{path}: {image.dtype} {image.shape} differs from the first image "
                              f"({np.dtype(job.dtype)} {job.shape}); a source set must be uniform")
-        yield aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0]
+        earlier = None if previous is None else aged_exposures(
+            device, image, [device.context(spec.model.t0 + job.ages[previous])], sensor_rng, index,
+            first_step=previous)[0]
+        yield aged_exposures(device, image, [ctx], sensor_rng, index, first_step=a_index)[0], earlier
 
 
 def _aged_templates(job: _ImpactJob, s_index: int, a_index: int, before: _Encoded | None
-                    ) -> tuple[_Encoded, int]:
-    """Every aged image (:func:`_aged_images`) encoded by every matcher, and how many templates were reused.
+                    ) -> tuple[_Encoded, int, int]:
+    """Every aged image (:func:`_aged_images`) encoded by every matcher, and how many templates and segmentation
+    steps were reused.
 
     With ``job.reuse`` a built-in matcher's template is ``before``'s (the sensor's previous computed age) where
-    the image's band is byte-identical to that age's (:func:`~forensics.impact.reuse.encode_reusing`).
+    the image's band is byte-identical to that age's (:func:`~forensics.impact.reuse.encode_reusing`; not even
+    unwrapped where the pixels it reads and the segmentation are unchanged: the image is aged to ``before``'s age
+    too to compare), and each segmentation reuses the costly steps whose inputs are byte-identical to
+    ``before``'s (:func:`~forensics.impact.reuse.segment_reusing`).
     """
     templates: dict[str, list[Any]] = {m.name: [] for m in job.matchers}
     bands: dict[str, list[bytes | None]] = {m.name: [] for m in job.matchers}
-    reused = 0
-    for k, aged in enumerate(_aged_images(job, s_index, a_index)):
+    segmenters = step_segmenters(job.matchers) if job.reuse else []
+    prior_steps = getattr(before, "steps", None) if before is not None else None
+    steps: list[tuple[dict[bytes, Any], ...]] = []
+    reused = steps_reused = 0
+    previous = getattr(before, "age", None) if job.reuse and before is not None else None
+    for k, (aged, earlier) in enumerate(_aged_images(job, s_index, a_index, previous)):
+        if segmenters:
+            recorded = prior_steps[k] if prior_steps is not None else (None,) * len(segmenters)
+            memos = [segment_reusing(seg, aged, old) for seg, old in zip(segmenters, recorded)]
+            steps.append(tuple(memo.entries for memo in memos))
+            steps_reused += sum(memo.hits for memo in memos)
         for matcher in job.matchers:
             if job.reuse:
                 prior = (before.bands[matcher.name][k], before.templates[matcher.name][k]) if before else None
-                band, template, same = encode_reusing(matcher, aged, prior)
+                band, template, same = encode_reusing(matcher, aged, prior, earlier)
             else:
                 band, template, same = None, matcher.encode(aged), False
             templates[matcher.name].append(template)
             bands[matcher.name].append(band)
             reused += same
-    return _Encoded(templates, bands), reused
+    return _Encoded(templates, bands, steps if segmenters else None, a_index), reused, steps_reused
 
 
 def _digest_task(job: _ImpactJob, item: tuple[int, int]) -> bytes:
@@ -602,7 +647,7 @@ def _digest_task(job: _ImpactJob, item: tuple[int, int]) -> bytes:
     everything after them are deterministic functions of those arrays, so their results are the same.
     """
     digest = hashlib.blake2b(digest_size=20)
-    for aged in _aged_images(job, *item):
+    for aged, _ in _aged_images(job, *item):
         digest.update(f"{aged.dtype.str}{aged.shape}".encode())
         digest.update(np.ascontiguousarray(aged).tobytes())
     return digest.digest()
@@ -752,7 +797,7 @@ def run_impact(
                           float(level), seed_record(rng), units, resumed_units=counts["resumed"],
                           reused_units=counts["reused"], computed_pairs=counts["computed"],
                           copied_pairs=counts["copied"], reused_templates=counts["templates"],
-                          segmentations=segmentations)
+                          reused_steps=counts["steps"], segmentations=segmentations)
     result.trends = trends(result)
     result.spreads = spreads(result)
     result.elapsed_s = time.perf_counter() - started
@@ -816,7 +861,7 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
 
     bar = _OneBar(progress, sum(len(t) for t in stages), "impact: sensor × age")
     found: dict[tuple[int, int], list[UnitResult]] = {}
-    counts = dict.fromkeys(("resumed", "reused", "computed", "copied", "templates"), 0)
+    counts = dict.fromkeys(("resumed", "reused", "computed", "copied", "templates", "steps"), 0)
     for items in stages:
         if not items:
             continue
@@ -834,6 +879,7 @@ def _run_tasks(ex: Executor, job: _ImpactJob, store: Checkpoint | None,
             counts["computed"] += out.get("computed", 0)   # absent from items of earlier versions' checkpoints
             counts["copied"] += out.get("copied", 0)
             counts["templates"] += out.get("templates_reused", 0)
+            counts["steps"] += out.get("steps_reused", 0)
             if out.get("enrol") is not None:
                 enrol_of[item] = out["enrol"]
             if out.get("bases") is not None:

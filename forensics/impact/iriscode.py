@@ -189,6 +189,76 @@ def hamming_all(codes_a: Sequence[IrisCode], codes_b: Sequence[IrisCode], max_sh
     return out
 
 
+def hamming_planes(codes_a: Sequence[Sequence[IrisCode]], codes_b: Sequence[Sequence[IrisCode]],
+                   shifts: Sequence[int], min_valid: int, chunk: tuple[int, int] = (32, 256)) -> np.ndarray:
+    """Distances of templates made of several bit planes under one mask, plane by plane at each shift:
+    ``(shifts, planes, len(a), len(b))``.
+
+    Entry ``[k, p, i, j]`` is ``hamming_all([a[p] for a in codes_a], [b[p].shifted(shifts[k]) for b in codes_b],
+    0, min_valid)[i, j]`` exactly (the same integer counts, the same division).  When every template's planes share
+    one mask (Monro's DCT planes: one usability per patch pair), the valid counts are computed once per shift for
+    all planes and every code is packed once, not once per plane and shift; otherwise each plane and shift is a
+    :func:`hamming_all` call.  ``chunk``: templates of ``a`` and ``b`` per block.
+    """
+    na, nb = len(codes_a), len(codes_b)
+    n_planes = len(codes_a[0]) if na else 0
+    out = np.ones((len(shifts), n_planes, na, nb), dtype=np.float64)
+    if na == 0 or nb == 0:
+        return out
+    first = codes_a[0][0]
+    for t in (*codes_a, *codes_b):
+        if len(t) != n_planes:
+            raise InputError(f"templates of {n_planes} and {len(t)} bit planes; encode both with the same settings")
+        for c in t:
+            _check_codes(first, c)
+    if not all(np.array_equal(c.mask, t[0].mask) for t in (*codes_a, *codes_b) for c in t[1:]):
+        for k, s in enumerate(shifts):
+            for p in range(n_planes):
+                out[k, p] = hamming_all([t[p] for t in codes_a], [t[p].shifted(s) for t in codes_b], 0, min_valid)
+        return out
+    cols, bpc = first.bits.shape
+    a_bits = [_words(np.stack([t[p].bits.reshape(-1) for t in codes_a])) for p in range(n_planes)]
+    a_mask = _words(np.stack([t[0].mask.reshape(-1) for t in codes_a]))
+    b_bits3 = [np.stack([t[p].bits for t in codes_b]) for p in range(n_planes)]
+    b_mask3 = np.stack([t[0].mask for t in codes_b])
+    n_words = a_mask.shape[0]
+    count_dtype = np.uint16 if n_words * 64 < 2**16 else np.uint32
+    threshold = max(min_valid, 1)
+    chunk_a, chunk_b = min(na, chunk[0]), min(nb, chunk[1])
+    block = (n_words, chunk_a, chunk_b)
+    m, x = np.empty(block, np.uint64), np.empty(block, np.uint64)
+    cnt = np.empty(block, np.uint8)
+    valid, diff = np.empty(block[1:], count_dtype), np.empty(block[1:], count_dtype)
+    for j0 in range(0, nb, chunk_b):
+        j1 = min(j0 + chunk_b, nb)
+        nj = j1 - j0
+
+        def rolled(stack3: np.ndarray, s: int, j0: int = j0, j1: int = j1, nj: int = nj) -> np.ndarray:
+            return _words(np.roll(stack3[j0:j1], s, axis=1).reshape(nj, cols * bpc))[:, None, :]
+
+        for k, s in enumerate(shifts):
+            b_mask = rolled(b_mask3, s)
+            b_bits = [rolled(b3, s) for b3 in b_bits3]
+            for i0 in range(0, na, chunk_a):
+                i1 = min(i0 + chunk_a, na)
+                ni = i1 - i0
+                mm, xx, cc = m[:, :ni, :nj], x[:, :ni, :nj], cnt[:, :ni, :nj]
+                vv, dd = valid[:ni, :nj], diff[:ni, :nj]
+                np.bitwise_and(a_mask[:, i0:i1, None], b_mask, out=mm)
+                np.bitwise_count(mm, out=cc)
+                np.add.reduce(cc, axis=0, dtype=count_dtype, out=vv)
+                comparable = vv >= threshold
+                denominator = vv.astype(np.float64)
+                for p in range(n_planes):
+                    np.bitwise_xor(a_bits[p][:, i0:i1, None], b_bits[p], out=xx)
+                    np.bitwise_and(xx, mm, out=xx)
+                    np.bitwise_count(xx, out=cc)
+                    np.add.reduce(cc, axis=0, dtype=count_dtype, out=dd)
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        out[k, p, i0:i1, j0:j1] = np.where(comparable, dd.astype(np.float64) / denominator, 1.0)
+    return out
+
+
 def hamming_all_spectral(codes_a: Sequence[IrisCode], codes_b: Sequence[IrisCode], max_shift: int, min_valid: int,
                          groups: np.ndarray | None = None) -> np.ndarray:
     """:func:`hamming_all` from exact counts by cross-correlation (:func:`~forensics.impact.spectral.shift_counts`).

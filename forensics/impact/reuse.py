@@ -23,26 +23,34 @@ is :func:`fill_upper`'s plan of ``compare_all`` calls (counted by the full-scale
 band — the texture, usability mask and segmentation :meth:`~forensics.impact.segment.Segmenter.unwrap` returns —
 and ``encode_texture`` is a deterministic function of those three alone (no random draw, no state).  So when an
 aged image's band is byte-identical to the band of the same source image at the sensor's previous computed age
-(the digests agree), the template *is* that age's template and its encoding is skipped.  The segmentation and the
-unwrapping are still computed (a defect anywhere can move the segmentation's whole-image thresholds, so nothing
-short of computing it proves it unchanged); what is saved is the feature extraction.
+(the digests agree), the template *is* that age's template and its encoding is skipped.  The unwrapping is still
+computed (the band's digest needs the band), and so is the segmentation, whose whole-image thresholds a defect
+anywhere can move; what is saved is the feature extraction.
+
+**And the segmentation's costly steps** (:func:`segment_reusing`): each image is segmented with a
+:class:`~forensics.impact.segment.memo.StepMemo` holding the steps of the same source image's segmentation at the
+previous computed age.  The cheap steps run; a costly one (a Hough transform, a limbus fit) whose inputs are
+byte-identical to the stored ones — the dark map, the voting edges, the ray profiles — returns the stored result,
+which is what it would compute.  The segmentation is the fresh one bit for bit.
 """
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from forensics._shared.digest import content_digest
 from forensics._shared.plugins import load_class
 from forensics.impact.matchers import BUILTIN_MATCHERS, compare_all
+from forensics.impact.segment.memo import StepMemo
+from forensics.impact.segment.normalise import footprint
+from forensics.impact.segment.segmenter import Segmenter
 
-__all__ = ["ScoredPairs", "band_encoder", "best_base", "encode_reusing", "fill_pairs", "fill_upper",
-           "template_digest", "unchanged", "upper_blocks", "upper_entries_computed"]
+__all__ = ["ScoredPairs", "band_encoder", "band_untouched", "best_base", "encode_reusing", "fill_pairs", "fill_upper",
+           "segment_reusing", "step_segmenters", "template_digest", "unchanged", "upper_blocks",
+           "upper_entries_computed"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,49 +71,11 @@ def template_digest(template: Any) -> bytes | None:
 
     Known: None, bool, int, float (its exact bits), complex, str, bytes, numpy arrays and scalars (dtype,
     shape, strides and bytes; object arrays are unknown), tuples, lists, dicts (in their order) and dataclass
-    instances (their class and every attribute).  Two templates with the same digest are equal value by value,
-    in the same types and memory layout, so a deterministic comparator gives them the same score.
+    instances (their class and every attribute) (:func:`~forensics._shared.digest.content_digest`).  Two
+    templates with the same digest are equal value by value, in the same types and memory layout, so a
+    deterministic comparator gives them the same score.
     """
-    digest = hashlib.sha256()
-    return digest.digest() if _feed(digest, template) else None
-
-
-def _feed(digest: Any, value: Any) -> bool:
-    """Add ``value`` to ``digest`` with its type; False when a part of it is of an unknown type."""
-    tag = f"{type(value).__module__}.{type(value).__qualname__}|".encode()
-    digest.update(tag)
-    if isinstance(value, (np.ndarray, np.generic)):
-        a = np.asarray(value)
-        if a.dtype.hasobject:
-            return False
-        digest.update(f"{a.dtype.str}{a.shape}{a.strides}".encode())
-        digest.update(np.ascontiguousarray(a).tobytes())
-        return True
-    if value is None or isinstance(value, (bool, int, str)):
-        digest.update(repr(value).encode() + b";")
-        return True
-    if isinstance(value, float):
-        digest.update(struct.pack("<d", value))   # the exact bits (repr would merge NaN payloads)
-        return True
-    if isinstance(value, complex):
-        digest.update(struct.pack("<dd", value.real, value.imag))
-        return True
-    if isinstance(value, (bytes, bytearray)):
-        digest.update(f"{len(value)}:".encode() + bytes(value))
-        return True
-    if isinstance(value, (tuple, list)):
-        digest.update(f"{len(value)}[".encode())
-        return all(_feed(digest, item) for item in value)
-    if isinstance(value, dict):
-        digest.update(f"{len(value)}{{".encode())
-        return all(_feed(digest, k) and _feed(digest, v) for k, v in value.items())
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        # Every attribute, not only the fields: a cached value stored on the instance is content too.
-        state = dict(vars(value)) if hasattr(value, "__dict__") else {}
-        state.update({f.name: getattr(value, f.name) for f in dataclasses.fields(value)})
-        digest.update(f"{len(state)}(".encode())
-        return all(_feed(digest, k) and _feed(digest, state[k]) for k in sorted(state))
-    return False
+    return content_digest(template)
 
 
 def band_encoder(matcher: Any) -> bool:
@@ -119,21 +89,71 @@ def band_encoder(matcher: Any) -> bool:
     return type(matcher) is (load_class(builtin, "matcher") if isinstance(builtin, str) else builtin)
 
 
-def encode_reusing(matcher: Any, image: np.ndarray, before: tuple[bytes | None, Any] | None
-                   ) -> tuple[bytes | None, Any, bool]:
+def encode_reusing(matcher: Any, image: np.ndarray, before: tuple[bytes | None, Any] | None,
+                   previous: np.ndarray | None = None) -> tuple[bytes | None, Any, bool]:
     """``(band digest, template, reused)`` of ``image``: ``before``'s template when its band digest is this
     image's (see the module's note), else a new encoding.
 
-    ``before`` is ``(band digest, template)`` of the same source image at the previous computed age (None: none).
-    A matcher that is not a :func:`band_encoder` encodes the image as usual and has no band digest.
+    ``before`` is ``(band digest, template)`` of the same source image at the previous computed age (None: none),
+    ``previous`` that age's image (None: not known).  With it the band is not even unwrapped when it provably
+    equals that age's (:func:`band_untouched`).  A matcher that is not a :func:`band_encoder` encodes the image
+    as usual and has no band digest.
     """
     if not band_encoder(matcher):
         return None, matcher.encode(image), False
+    if before is not None and before[0] is not None and previous is not None and \
+            band_untouched(matcher, image, previous, getattr(before[1], "segmentation", None)):
+        return before[0], before[1], True
     band = matcher.segmenter.unwrap(image, matcher.radial, matcher.angular)
     key = template_digest(band)
     if key is not None and before is not None and before[0] == key:
         return key, before[1], True
     return key, matcher.encode_texture(*band), False
+
+
+def band_untouched(matcher: Any, image: np.ndarray, previous: np.ndarray, prior: Any) -> bool:
+    """Whether ``matcher``'s band of ``image`` is provably the band it had in ``previous`` (the same eye at the
+    previous computed age), whose template carried the segmentation ``prior``: without unwrapping it.
+
+    True when ``image`` is segmented (the shared :class:`~forensics.impact.segment.Segmenter`, cached) exactly as
+    ``prior`` (content digests equal), both are 8-bit grey images of one shape (their full scale is the dtype's),
+    and they agree on every pixel of the box :func:`~forensics.impact.segment.normalise.footprint` says the
+    unwrapping reads: the unwrapping is then a deterministic function of byte-identical inputs.  ``prior`` is
+    the segmentation the band was encoded with — the image's own, or that one marked failed for too little usable
+    iris, in which case they differ and the band is unwrapped (never wrongly reused).
+    """
+    if prior is None or image.ndim != 2 or image.shape != previous.shape or image.dtype != previous.dtype or \
+            image.dtype.itemsize != 1 or not np.issubdtype(image.dtype, np.integer):
+        return False
+    seg = matcher.segmenter.segment(image)
+    if content_digest(seg) != content_digest(prior):
+        return False
+    y0, y1, x0, x1 = footprint(seg, matcher.radial, matcher.angular, image.shape)
+    return bool(np.array_equal(image[y0:y1, x0:x1], previous[y0:y1, x0:x1]))
+
+
+def step_segmenters(matchers: Sequence[Any]) -> list[Segmenter]:
+    """The distinct built-in :class:`~forensics.impact.segment.Segmenter` objects of the :func:`band_encoder`
+    matchers, in the matchers' order: the segmentations :func:`segment_reusing` runs."""
+    out: list[Segmenter] = []
+    for matcher in matchers:
+        segmenter = getattr(matcher, "segmenter", None)
+        if band_encoder(matcher) and type(segmenter) is Segmenter and all(segmenter is not s for s in out):
+            out.append(segmenter)
+    return out
+
+
+def segment_reusing(segmenter: Segmenter, image: np.ndarray, before: dict[bytes, Any] | None) -> StepMemo:
+    """Segment ``image`` (into ``segmenter``'s one-image cache, where the matchers' encodings find it), reusing
+    the costly steps whose inputs are byte-identical to those recorded in ``before``
+    (:class:`~forensics.impact.segment.memo.StepMemo`: the same segmentation, bit for bit); the memo, whose
+    ``entries`` are this image's steps for the next age and ``hits`` the steps reused.
+
+    ``before`` is the step record of the same source image at the previous computed age (None: none).
+    """
+    memo = StepMemo(before)
+    segmenter.segment(image, memo=memo)
+    return memo
 
 
 def unchanged(now: Sequence[bytes | None], before: Sequence[bytes | None]) -> np.ndarray:

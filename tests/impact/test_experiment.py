@@ -70,7 +70,8 @@ def _comparable(result) -> dict:
     out = result.to_dict()
     out.pop("elapsed_s")
     out.pop("resumed_units")
-    for how in ("reused_units", "computed_pairs", "copied_pairs", "reused_templates"):   # how it was obtained, not what it is
+    for how in ("reused_units", "computed_pairs", "copied_pairs", "reused_templates",
+                "reused_steps"):                                  # how it was obtained, not what it is
         out.pop(how)
     return out
 

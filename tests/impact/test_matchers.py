@@ -214,6 +214,33 @@ def test_hamming_all_with_padding_and_small_chunks():
         assert np.array_equal(hamming_all(a, b, 4, 20, memory=memory, block_bytes=block), loop)
 
 
+def test_planes_under_one_mask_equal_hamming_all_plane_by_plane_and_shift_by_shift():
+    # Monro's DCT template: three bit planes under one mask; hamming_planes counts the valid bits once per shift
+    # and must still give, for every plane and shift, hamming_all of the shifted codes (small blocks split both
+    # sides; a template whose planes' masks differ goes plane by plane, also exactly).
+    from forensics.impact.iriscode import hamming_planes
+
+    rng = np.random.default_rng(5)
+
+    def templates(n: int, shared: bool = True) -> list[tuple[IrisCode, ...]]:
+        masks = _random_codes(rng, n, 29, 12)
+        return [tuple(IrisCode.from_bits(rng.random((29, 12)) < 0.5,
+                                         m.unpack()[1] if shared or p == 0 else rng.random((29, 12)) < 0.9)
+                      for p in range(3)) for m in masks]
+
+    a, b = templates(9), templates(11)
+    odd = [*b[:10], templates(1, shared=False)[0]]
+    shifts = [-2, -1, 0, 1, 2]
+    for other in (b, odd):
+        for chunk in ((2, 3), (32, 256)):
+            got = hamming_planes(a, other, shifts, 40, chunk=chunk)
+            for k, s in enumerate(shifts):
+                for p in range(3):
+                    want = hamming_all([t[p] for t in a], [t[p].shifted(s) for t in other], 0, 40)
+                    assert np.array_equal(got[k, p], want)
+    assert (got == 1.0).any() and (got < 1.0).any()
+
+
 def test_mismatched_codes_are_refused():
     small = IrisCode.from_bits(np.zeros((10, 8), bool), np.ones((10, 8), bool))
     big = IrisCode.from_bits(np.zeros((12, 8), bool), np.ones((12, 8), bool))

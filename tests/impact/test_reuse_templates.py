@@ -8,6 +8,7 @@ gives the same result, number for number, with every reuse and with none.
 from __future__ import annotations
 
 import csv
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,9 @@ import pytest
 from forensics.impact.experiment import parse_sensors, run_impact
 from forensics.impact.masek import MasekMatcher
 from forensics.impact.matchers import ExternalMatcher, load_matchers
+from forensics._shared.digest import content_digest
 from forensics.impact.reuse import band_encoder, encode_reusing, template_digest
+from forensics.impact.segment.normalise import footprint
 from forensics.io.dataset import open_dataset
 
 ALL = ["masek", "ko", "qsw", "dct", "cr", "cb"]
@@ -56,6 +59,40 @@ def test_a_template_is_reused_exactly_when_its_band_is_unchanged(captures, name)
     assert not other[2] and template_digest(other[1]) == template_digest(template)
 
 
+@pytest.mark.parametrize("name", ["masek", "cb"])
+def test_a_band_whose_pixels_and_segmentation_are_unchanged_is_not_even_unwrapped(captures, name, monkeypatch):
+    (matcher,) = load_matchers([name])
+    image = captures[0, 0]
+    key, template, _ = encode_reusing(matcher, image, None)
+    seg = matcher.segmenter.segment(image)
+    y0, y1, x0, x1 = footprint(seg, matcher.radial, matcher.angular, image.shape)
+    outside = image.copy()
+    outside[0, 0] ^= 1                                   # a corner pixel, outside the box the unwrapping reads
+    assert y0 > 0 and x0 > 0
+    inside = image.copy()
+    row, col = int(round(seg.iris[1])), int(round(seg.iris[0] + (seg.pupil[2] + seg.iris[2]) / 2))   # mid-iris
+    inside[row, col] ^= 64
+    want_outside = template_digest(load_matchers([name])[0].encode(outside))
+    want_inside = template_digest(load_matchers([name])[0].encode(inside))
+    assert content_digest(matcher.segmenter.segment(outside)) == content_digest(seg)   # the corner moves nothing
+
+    def no_unwrap(*args, **kwargs):
+        raise AssertionError("unwrapped")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(type(matcher.segmenter), "unwrap", no_unwrap)
+        again = encode_reusing(matcher, outside, (key, template), image)
+        assert again[0] == key and again[1] is template and again[2]
+        assert template_digest(again[1]) == want_outside
+        # A template encoded with another segmentation (here: marked failed) is never taken without unwrapping.
+        other = dataclasses.replace(template, segmentation=seg.failed("another segmentation"))
+        with pytest.raises(AssertionError, match="unwrapped"):
+            encode_reusing(matcher, outside, (key, other), image)
+    # A changed pixel in the box: unwrapped and encoded anew, equal to a fresh encoding.
+    changed = encode_reusing(matcher, inside, (key, template), image)
+    assert not changed[2] and template_digest(changed[1]) == want_inside
+
+
 def test_a_subclass_encodes_every_image(captures):
     matcher = Subclass()
     key, template, reused = encode_reusing(matcher, captures[0, 0], (b"x", "stale"))
@@ -88,10 +125,11 @@ def test_real_eyes_give_the_same_result_with_every_reuse_and_with_none(tmp_path)
             for reuse in (True, False)}
     fast, slow = runs[True], runs[False]
     assert fast.reused_templates > 0 and slow.reused_templates == 0 and fast.reused_units > 0
+    assert fast.reused_steps > 0 and slow.reused_steps == 0
     a, b = fast.to_dict(), slow.to_dict()
     for d in (a, b):
         for how in ("elapsed_s", "resumed_units", "reused_units", "computed_pairs", "copied_pairs",
-                    "reused_templates"):
+                    "reused_templates", "reused_steps"):
             d.pop(how)
     assert a == b
     for ua, ub in zip(fast.units, slow.units):

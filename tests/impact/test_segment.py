@@ -6,6 +6,7 @@ circles, a known eyelid and a known specular spot, so that every result can be c
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -313,7 +314,7 @@ def test_coarse_to_fine_circle_search_finds_the_exhaustive_optimum(offset):
 def test_the_square_growth_of_masks_is_the_binary_dilation(size):
     # The rubber sheet grows reflections (5 × 5) and occlusions (3 × 3) by running maxima instead of a binary
     # dilation: the same pixels, edges included (nothing beyond them), on sparse and dense random masks.
-    from forensics.impact.segment.normalise import _grown
+    from forensics.impact.segment.morphology import grow_square
 
     rng = np.random.default_rng(size)
     for density in (0.002, 0.05, 0.5):
@@ -321,4 +322,51 @@ def test_the_square_growth_of_masks_is_the_binary_dilation(size):
         mask[0, 5] = mask[-1, -1] = True                       # at the edges
         for m in (mask, np.flip(mask, 0)):                      # a flipped (negative-stride) view too
             want = ndimage.binary_dilation(m, structure=np.ones((size, size), bool), border_value=0)
-            assert np.array_equal(_grown(m, size), want)
+            assert np.array_equal(grow_square(m, size), want)
+
+
+def test_disc_morphology_is_scipys_binary_morphology():
+    # CAHT's dark map is opened by a disc and its holes filled, reflections grow by a disc: the row-run forms
+    # (forensics.impact.segment.morphology) give scipy's pixels, edges included, for discs of radius 1-5, a cross,
+    # a rectangle and (by falling back) a structure that is not symmetric, on sparse and dense random masks and
+    # negative-stride views.
+    from skimage.morphology import disk
+
+    from forensics.impact.segment.morphology import fill_holes, grow, opening, shrink
+
+    rng = np.random.default_rng(7)
+    structures = [disk(r).astype(bool) for r in range(1, 6)] + [
+        ndimage.generate_binary_structure(2, 1), np.ones((3, 5), bool),
+        np.array([[1, 1, 0], [0, 1, 0], [0, 1, 1]], bool)]
+    for density in (0.01, 0.2, 0.6, 0.9):
+        mask = rng.random((47, 71)) < density
+        mask[0, 3] = mask[-1, -1] = True
+        for m in (mask, np.flip(mask, 0)):
+            for st in structures:
+                assert np.array_equal(grow(m, st), ndimage.binary_dilation(m, structure=st))
+                assert np.array_equal(shrink(m, st), ndimage.binary_erosion(m, structure=st))
+                assert np.array_equal(opening(m, st), ndimage.binary_opening(m, structure=st))
+            assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
+    # A dark map with a hole (a pupil with a reflection) and a region touching the edge.
+    ring = np.zeros((40, 40), bool)
+    ring[5:20, 5:20], ring[9:12, 9:12], ring[30:, 30:] = True, False, True
+    assert np.array_equal(fill_holes(ring), ndimage.binary_fill_holes(ring)) and fill_holes(ring)[10, 10]
+
+
+def test_the_row_medians_are_numpys_nanmedian_bit_for_bit():
+    # The occlusion mask's per-row medians over angle: numpy's sort-and-halve method without the masked arrays,
+    # on float32 rows of the rubber sheets' widths with NaN holes, empty rows, odd and even counts and ties.
+    from forensics.impact.segment.normalise import _row_medians
+
+    rng = np.random.default_rng(11)
+    for width in (240, 360, 512, 516, 7):
+        values = rng.normal(100, 20, (40, width)).astype(np.float32)
+        values[::3] = np.round(values[::3] / 8) * 8                     # ties
+        values[rng.random(values.shape) < rng.uniform(0, 1, (40, 1))] = np.nan
+        values[5], values[6, 1:] = np.nan, np.nan                        # empty, and one number
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = np.nanmedian(values, axis=1, keepdims=True)
+        got = _row_medians(values)
+        assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
+

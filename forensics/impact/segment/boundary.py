@@ -20,6 +20,7 @@ import numpy as np
 from scipy import ndimage
 
 from forensics.impact.segment.common import Circle
+from forensics.impact.segment.memo import StepMemo, remembered
 
 Arcs = tuple[tuple[float, float], ...]
 
@@ -81,7 +82,7 @@ def band_contrast(smooth: np.ndarray, circle: Circle, arcs: Arcs, width: float =
 
 
 def polar_fit(smooth: np.ndarray, start: Circle, arcs: Arcs, window: float = 0.08, step: float = 2.0,
-              sigma: float = 1.0, coarse: int = 6) -> tuple[Circle, float]:
+              sigma: float = 1.0, coarse: int = 6, memo: StepMemo | None = None) -> tuple[Circle, float]:
     """The circle near ``start`` along which the rays' own strongest rises are best met: ``(circle, score)``.
 
     Around ``start``'s centre the image is resampled on rays every ``step`` degrees over ``arcs`` (0.5-px radial
@@ -95,7 +96,9 @@ def polar_fit(smooth: np.ndarray, start: Circle, arcs: Arcs, window: float = 0.0
     window gives the same circle.  ``score`` (0–1) is the mean normalised rise on the result.
 
     ``coarse`` > 0 searches the grid coarse-to-fine from that many coarse circles (:func:`_grid_argmax`; about
-    six times faster), 0 exhaustively.
+    six times faster), 0 exhaustively.  With a ``memo`` (:class:`~forensics.impact.segment.memo.StepMemo`) the
+    search is reused where the sampled profiles are byte-identical to those of an earlier fit: the search reads
+    nothing else.
     """
     x0, y0, r0 = start
     ang = ray_angles(arcs, step)
@@ -105,6 +108,13 @@ def polar_fit(smooth: np.ndarray, start: Circle, arcs: Arcs, window: float = 0.0
     ang = ang[inside[0]]
     if ang.size < 5:
         return (float(x0), float(y0), float(r0)), 0.0
+    return remembered(memo, _polar_search, prof, ang, rs, dr, (x0, y0, r0), window, sigma, coarse)
+
+
+def _polar_search(prof: np.ndarray, ang: np.ndarray, rs: np.ndarray, dr: float, start: Circle, window: float,
+                  sigma: float, coarse: int) -> tuple[Circle, float]:
+    """:func:`polar_fit`'s search on the sampled profiles ``prof`` (rays ``ang`` × radii ``rs``, ``dr`` apart)."""
+    x0, y0, r0 = start
     deriv = ndimage.gaussian_filter1d(prof, sigma / dr, axis=1, order=1)
     top = deriv.max(axis=1, keepdims=True)
     norm = np.clip(deriv / np.where(top > 0, top, np.inf), 0.0, 1.0)
@@ -113,14 +123,24 @@ def polar_fit(smooth: np.ndarray, start: Circle, arcs: Arcs, window: float = 0.0
     row0 = (np.arange(ang.size) * rs.size)[None, :, None]
 
     def score(dxs: np.ndarray, dys: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        # The operations of ρ = d·o + √((d·o)² − |o|² + r²), the position on the ray and the linear
+        # interpolation, in place on few buffers (the same operations in the same order: the same bits).
         proj = dxs[:, None] * cos[None, :] - dys[:, None] * sin[None, :]                 # (centres, rays)
         base = proj * proj - (dxs * dxs + dys * dys)[:, None]
-        disc = base[:, :, None] + (radii * radii)[None, None, :]                         # (centres, rays, radii)
-        pos = (proj[:, :, None] + np.sqrt(np.maximum(disc, 0.0)) - rs[0]) / dr
-        i0 = np.clip(np.floor(pos).astype(np.int64), 0, rs.size - 2)
-        frac = np.clip(pos - i0, 0.0, 1.0)
+        pos = np.add(base[:, :, None], (radii * radii)[None, None, :])                   # (centres, rays, radii)
+        np.maximum(pos, 0.0, out=pos)
+        np.sqrt(pos, out=pos)
+        np.add(proj[:, :, None], pos, out=pos)
+        pos -= rs[0]
+        pos /= dr
+        i0 = np.floor(pos).astype(np.int64)
+        np.clip(i0, 0, rs.size - 2, out=i0)
+        frac = np.subtract(pos, i0)
+        np.clip(frac, 0.0, 1.0, out=frac)
         i0 += row0
-        val = flat[i0] * (1 - frac) + flat[i0 + 1] * frac
+        val = np.multiply(np.take(flat, i0), np.subtract(1, frac))                       # float32 × float64
+        i0 += 1
+        val += np.multiply(np.take(flat, i0), frac, out=frac)
         val[(pos < 0) | (pos > rs.size - 1)] = 0.0
         # The reduction runs over the middle axis, so numpy adds the rays in order whatever the other axes'
         # sizes: a circle scores the same bits in the coarse, local and full grids.

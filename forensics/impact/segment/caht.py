@@ -53,6 +53,8 @@ from forensics.impact.segment.common import (
     stretch,
 )
 from forensics.impact.segment.edges import edges_and_gradient, find_eyelid
+from forensics.impact.segment.memo import StepMemo, remembered
+from forensics.impact.segment.morphology import fill_holes, opening
 
 #: CAHT's darkness threshold after the 2 %/4 % luminance adjustment (a 3×3 sum saturating at 255 stays below
 #: 255 only if the mean is below 28).
@@ -75,6 +77,7 @@ def segment_caht(
     lid_curvature: float = 0.5,
     lid_support: float = 0.3,
     coarse: int = 6,
+    memo: StepMemo | None = None,
 ) -> Segmentation:
     """Segment an eye image with the CAHT-like method (see the module docstring).
 
@@ -99,6 +102,11 @@ def segment_caht(
         The limbus refinement's circle search (:func:`~forensics.impact.segment.boundary.polar_fit`):
         coarse-to-fine from this many coarse circles, or exhaustive with 0 (about three times slower overall;
         on the 400 shared IITD eyes one limbus of 400 differs, ``benchmarks/RESULTS_impact.md``).
+    memo
+        Reuse the costly steps (the pupil's and the limbus's Hough transforms, the limbus fits) where their
+        inputs are byte-identical to an earlier segmentation's (:class:`~forensics.impact.segment.memo.StepMemo`):
+        the same result, bit for bit, in a fraction of the time for an image that differs from an earlier one
+        in a few pixels.
 
     Returns
     -------
@@ -114,10 +122,11 @@ def segment_caht(
     if float(img.max()) - float(img.min()) < 1e-6:
         return guess.failed("flat image: no edges")
     filled = fill_masked(img, reflection_mask(img))
-    pupil, p_support = find_pupil(filled, min_pupil)
+    pupil, p_support = find_pupil(filled, min_pupil, memo=memo)
     if pupil is None:
         return guess.failed("no dark, round pupil found")
-    iris, l_support = find_limbus(filled, pupil, center_range, iris_ratio, decentration, coarse=coarse)
+    iris, l_support = find_limbus(filled, pupil, center_range, iris_ratio, decentration, coarse=coarse,
+                                   memo=memo)
     if iris is None:
         return Segmentation(pupil=pupil, iris=guess.iris, ok=False, quality=0.0, reason="no limbus edges",
                             method="caht")
@@ -129,8 +138,8 @@ def segment_caht(
     upper_lid = lower_lid = None
     if eyelids:
         ey, ex, gy, gx = edges_and_gradient(filled, max(1.0, 0.008 * side), (0.85, 0.93))
-        upper_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, True, lid_curvature, lid_support)
-        lower_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, False, lid_curvature, lid_support)
+        upper_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, True, lid_curvature, lid_support, memo)
+        lower_lid = find_eyelid(ey, ex, gy, gx, pupil, iris, False, lid_curvature, lid_support, memo)
     reason = "; ".join(r for r in reasons if r)
     return Segmentation(pupil=pupil, iris=iris, ok=not reason, quality=float(min(p_support, l_support)),
                         reason=reason, upper_lid=upper_lid, lower_lid=lower_lid, method="caht")
@@ -143,45 +152,60 @@ def dark_region(img: np.ndarray) -> np.ndarray:
 
     dark = stretch(img, 0.02, 0.04) < DARK
     radius = max(1, round(0.01 * image_size(img.shape)))
-    dark = ndimage.binary_opening(dark, structure=disk(radius))
-    return ndimage.binary_fill_holes(dark)
+    return fill_holes(opening(dark, disk(radius)))
 
 
-def find_pupil(img: np.ndarray, min_pupil: float = 0.025, n_candidates: int = 4) -> tuple[Circle | None, float]:
+def find_pupil(img: np.ndarray, min_pupil: float = 0.025, n_candidates: int = 4, memo: StepMemo | None = None
+               ) -> tuple[Circle | None, float]:
     """The pupil circle and its edge support (0–1), or ``(None, 0)``.
 
     Candidates are the thickest places of the dark region (:func:`dark_region`) at least half as thick as the
     thickest (a pupil is the largest dark disc of an eye image; lash clumps and shadows are thinner); see the
-    module docstring.
+    module docstring.  The candidates' Hough circles depend on the dark region alone (:func:`pupil_candidates`,
+    reused through ``memo`` where it is byte-identical).
+    """
+    side = image_size(img.shape)
+    candidates = remembered(memo, pupil_candidates, dark_region(img), float(min_pupil), int(n_candidates))
+    if not candidates:
+        return None, 0.0
+    smooth = ndimage.gaussian_filter(img, max(1.0, 0.006 * side))
+    best: tuple[float, Circle | None] = (-1.0, None)
+    for coarse in candidates:
+        circle, _strength, support = fit_rays(smooth, coarse, PUPIL_ARCS, step=3.0, window=0.15)
+        if support > best[0]:
+            best = (support, circle)
+    return best[1], max(best[0], 0.0)
+
+
+def pupil_candidates(dark: np.ndarray, min_pupil: float, n_candidates: int) -> tuple[Circle, ...]:
+    """The pupil candidates' circles from the Hough transform of the dark region's rim (:func:`_pupil_hough`).
+
+    The candidates are the dark region's thickest places (maxima of its distance transform, at least
+    ``min_pupil`` × the shorter side and half as thick as the thickest); empty when there is none.
     """
     from skimage.feature import peak_local_max
 
-    side = image_size(img.shape)
-    dark = dark_region(img)
     if not dark.any():
-        return None, 0.0
+        return ()
+    side = image_size(dark.shape)
     depth = ndimage.distance_transform_edt(dark)
     r_min = max(2.0, min_pupil * side)
     peaks = peak_local_max(depth, min_distance=max(1, int(r_min)), threshold_abs=r_min, num_peaks=n_candidates,
                            exclude_border=False)
     if len(peaks) == 0:
-        return None, 0.0
+        return ()
     thickest = max(float(depth[py, px]) for py, px in peaks)
     # CAHT's Hough votes with the edges of the dark map (its Canny on the processed image): the dark region's
     # rim, one pixel wide.
     rim = dark & ~ndimage.binary_erosion(dark)
-    smooth = ndimage.gaussian_filter(img, max(1.0, 0.006 * side))
-    best: tuple[float, Circle | None] = (-1.0, None)
+    found = []
     for py, px in peaks:
         if depth[py, px] < 0.5 * thickest:
             continue
         coarse = _pupil_hough(rim, float(px), float(py), float(depth[py, px]))
-        if coarse is None:
-            continue
-        circle, _strength, support = fit_rays(smooth, coarse, PUPIL_ARCS, step=3.0, window=0.15)
-        if support > best[0]:
-            best = (support, circle)
-    return best[1], max(best[0], 0.0)
+        if coarse is not None:
+            found.append(coarse)
+    return tuple(found)
 
 
 def _pupil_hough(rim: np.ndarray, cx: float, cy: float, depth: float) -> Circle | None:
@@ -216,23 +240,37 @@ def limbus_image(img: np.ndarray, pupil: Circle) -> np.ndarray:
     """CAHT's contrast-adjusted image for the limbus: pupil blacked out, luminance adjusted, clipped at 0.5."""
     h, w = img.shape
     xp, yp, rp = pupil
-    yy, xx = np.mgrid[0:h, 0:w]
-    d = np.hypot(xx - xp, yy - yp).astype(np.float32)
     r2 = 1.5 * rp
+    # Only the disc of radius r2 changes: computed on its box (the same pixels in the same order, so the same
+    # ring mean and blend), the rest is the image.
+    y0, y1, x0, x1 = 0, h, 0, w
+    if np.isfinite([xp, yp, r2]).all():
+        y0, y1 = max(0, math.floor(yp - abs(r2)) - 1), min(h, math.ceil(yp + abs(r2)) + 2)
+        x0, x1 = max(0, math.floor(xp - abs(r2)) - 1), min(w, math.ceil(xp + abs(r2)) + 2)
+        y1, x1 = max(y0, y1), max(x0, x1)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    d = np.hypot(xx - xp, yy - yp).astype(np.float32)
+    box = img[y0:y1, x0:x1]
     ring = (d >= rp) & (d <= r2)
-    mean = float(img[ring].mean()) if ring.any() else float(img.mean())
+    mean = float(box[ring].mean()) if ring.any() else float(img.mean())
     alpha = np.clip((d - rp) / max(r2 - rp, 1e-6), 0.0, 1.0)
-    work = np.where(d <= r2, img * alpha + np.float32(mean) * (1 - alpha), img).astype(np.float32)
+    work = img.astype(np.float32, copy=True)
+    work[y0:y1, x0:x1] = np.where(d <= r2, box * alpha + np.float32(mean) * (1 - alpha), box)
     black = min(0.5, math.pi * r2 * r2 / (h * w))
     return np.minimum(stretch(work, black, 0.01), np.float32(0.5))
 
 
 def find_limbus(img: np.ndarray, pupil: Circle, center_range: float = 1.3, iris_ratio: tuple[float, float] = (1.5, 8.0),
-                decentration: float = 0.1, n_candidates: int = 4, coarse: int = 6) -> tuple[Circle | None, float]:
-    """The limbus circle and its edge support (0–1), or ``(None, 0)``; see the module docstring."""
+                decentration: float = 0.1, n_candidates: int = 4, coarse: int = 6, memo: StepMemo | None = None
+                ) -> tuple[Circle | None, float]:
+    """The limbus circle and its edge support (0–1), or ``(None, 0)``; see the module docstring.
+
+    The Hough transform's starts depend on the voting edges alone (:func:`limbus_starts`) and each refinement
+    on its ray profiles (:func:`~forensics.impact.segment.boundary.polar_fit`): both reused through ``memo``
+    where those are byte-identical.
+    """
     from skimage.feature import canny
 
-    h, w = img.shape
     xp, yp, rp = pupil
     side = image_size(img.shape)
     k = max(1, round(side / 120))                          # coarse stage at ~120 px on the shorter side
@@ -250,45 +288,58 @@ def find_limbus(img: np.ndarray, pupil: Circle, center_range: float = 1.3, iris_
         return None, 0.0
     above = np.clip(cyp - ey, 0.0, None)
     weight = np.clip(1.0 - above ** 2 / (4.25 * crp * crp), 0.0, 1.0)
+    starts = remembered(memo, limbus_starts, ex, ey, weight, (cxp, cyp, crp), k, adj.shape, center_range,
+                        iris_ratio, decentration, n_candidates)
+    # The few best distinct circles go to the full-resolution refinement, and the refined circle with the
+    # largest iris-to-sclera step wins.
+    smooth_full = ndimage.gaussian_filter(img, max(1.0, 0.004 * side))
+    best: tuple[float, Circle | None, float] = (-np.inf, None, 0.0)
+    for x0, y0, r0 in starts:
+        circle, support = polar_fit(smooth_full, (x0, y0, r0), LIMBUS_ARCS, coarse=coarse, memo=memo)
+        offset = math.hypot(circle[0] - xp, circle[1] - yp)
+        if offset > center_range * rp or not iris_ratio[0] * rp <= circle[2] <= iris_ratio[1] * rp:
+            continue                                       # the refinement left CAHT's search ranges
+        # The iris-to-sclera step times the rays' agreement: a ring inside the iris has a smaller step, a
+        # circle across lashes and lids less agreement.
+        value = band_contrast(smooth_full, circle, LIMBUS_ARCS) * support
+        if value > best[0]:
+            best = (value, circle, support)
+    return best[1], best[2]
+
+
+def limbus_starts(ex: np.ndarray, ey: np.ndarray, weight: np.ndarray, pupil: Circle, k: int,
+                  shape: tuple[int, int], center_range: float, iris_ratio: tuple[float, float], decentration: float,
+                  n_candidates: int) -> tuple[Circle, ...]:
+    """The ``n_candidates`` best distinct limbus circles of the weighted Hough transform, at full resolution.
+
+    ``ex, ey, weight`` are the voting edges of the ``k``-times reduced image of ``shape``, ``pupil`` the pupil
+    in its coordinates; see the module docstring.  The lateral edges leave the vertical position loose, so
+    several distinct circles go to the refinement.
+    """
+    cxp, cyp, crp = pupil
     r_lo = max(2, int(iris_ratio[0] * crp))
     # Beyond 0.8 × the longer side, less than half the iris disc can be in the image (see plausibility).
-    r_hi = max(r_lo + 1, int(min(iris_ratio[1] * crp, 0.8 * max(adj.shape))))
+    r_hi = max(r_lo + 1, int(min(iris_ratio[1] * crp, 0.8 * max(shape))))
     radii = np.arange(r_lo, r_hi + 1, dtype=float)
     span = int(math.ceil(center_range * crp))
     offs = np.arange(-span, span + 1, 2, dtype=float)  # every 2 coarse px; the refinement searches ±(k + 2) px
     gxs, gys = np.meshgrid(round(cxp) + offs, round(cyp) + offs)
     near = np.hypot(gxs - cxp, gys - cyp) <= center_range * crp
     cx, cy = gxs[near], gys[near]
-    cover = _lateral_votes(ex, ey, weight, cx, cy, radii, adj.shape)
+    cover = _lateral_votes(ex, ey, weight, cx, cy, radii, shape)
     prior = np.exp(-0.5 * (np.hypot(cx - cxp, cy - cyp)[:, None] / (decentration * radii[None, :])) ** 2)
     score = cover * prior
-    # The few best distinct circles go to the full-resolution refinement, each started from a few centres
-    # around it (the lateral edges leave the vertical position loose, and the fit converges to the nearest
-    # boundary), and the refined circle with the largest iris-to-sclera step wins.
-    smooth_full = ndimage.gaussian_filter(img, max(1.0, 0.004 * side))
     starts = []
     for _ in range(n_candidates):
         idx = int(np.argmax(score))
         if score.flat[idx] <= 0:
             break
         c, r = divmod(idx, radii.size)
-        starts.append(((cx[c] + 0.5) * k - 0.5, (cy[c] + 0.5) * k - 0.5, radii[r] * k))
+        starts.append((float((cx[c] + 0.5) * k - 0.5), float((cy[c] + 0.5) * k - 0.5), float(radii[r] * k)))
         # Suppress this circle's neighbourhood (3 coarse pixels of centre and radius) before the next pick.
         close = np.hypot(cx - cx[c], cy - cy[c]) <= 3
         score[np.ix_(close, np.abs(radii - radii[r]) <= 3)] = 0
-    best: tuple[float, Circle | None, float] = (-np.inf, None, 0.0)
-    for x0, y0, r0 in starts:
-        for dy in (0.0,):
-            circle, support = polar_fit(smooth_full, (x0, y0 + dy, r0), LIMBUS_ARCS, coarse=coarse)
-            offset = math.hypot(circle[0] - xp, circle[1] - yp)
-            if offset > center_range * rp or not iris_ratio[0] * rp <= circle[2] <= iris_ratio[1] * rp:
-                continue                                   # the refinement left CAHT's search ranges
-            # The iris-to-sclera step times the rays' agreement: a ring inside the iris has a smaller step, a
-            # circle across lashes and lids less agreement.
-            value = band_contrast(smooth_full, circle, LIMBUS_ARCS) * support
-            if value > best[0]:
-                best = (value, circle, support)
-    return best[1], best[2]
+    return tuple(starts)
 
 
 def _lateral_votes(ex, ey, weight, cx, cy, radii, shape) -> np.ndarray:

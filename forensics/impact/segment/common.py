@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from forensics._shared.errors import InputError
+from forensics.impact.segment.morphology import grow as grow_mask
 
 # A circle: centre column, centre row, radius (pixels).
 Circle = tuple[float, float, float]
@@ -170,7 +171,7 @@ def reflection_mask(img: np.ndarray, contrast: float = 60 / 255, level: float = 
     radius = max(1, round(grow * side))
     if mask.any():
         yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
-        mask = ndimage.binary_dilation(mask, structure=xx * xx + yy * yy <= radius * radius)
+        mask = grow_mask(mask, xx * xx + yy * yy <= radius * radius)
     return mask
 
 
@@ -243,7 +244,18 @@ def contrast_check(img: np.ndarray, pupil: Circle, iris: Circle, margin: float =
     step = margin * max(float(hi - lo), 1e-6)
     xp, yp, rp = pupil
     xi, yi, ri = iris
-    yy, xx = np.mgrid[0:h, 0:w]
+    # Every region lies within 1.2 iris radii of the iris centre or 0.8 pupil radii of the pupil's: only that box
+    # is measured (the same pixels in the same order, so the same medians; the whole image for odd circles).
+    y0, y1, x0, x1 = 0, h, 0, w
+    if np.isfinite([xp, yp, rp, xi, yi, ri]).all():
+        reach_i, reach_p = 1.2 * abs(ri) + 2, 0.8 * abs(rp) + 2
+        x0 = max(0, min(math.floor(xi - reach_i), math.floor(xp - reach_p)))
+        x1 = min(w, max(math.ceil(xi + reach_i), math.ceil(xp + reach_p)) + 1)
+        y0 = max(0, min(math.floor(yi - reach_i), math.floor(yp - reach_p)))
+        y1 = min(h, max(math.ceil(yi + reach_i), math.ceil(yp + reach_p)) + 1)
+        x1, y1 = max(x1, x0), max(y1, y0)
+    img = img[y0:y1, x0:x1]
+    yy, xx = np.mgrid[y0:y1, x0:x1]
     dp = np.hypot(xx - xp, yy - yp)
     di = np.hypot(xx - xi, yy - yi)
     lateral = np.abs(xx - xi) >= 0.5 * np.maximum(di, 1e-9)

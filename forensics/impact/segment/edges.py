@@ -11,6 +11,7 @@ import numpy as np
 from scipy import ndimage
 
 from forensics.impact.segment.common import Circle, Parabola
+from forensics.impact.segment.memo import StepMemo, remembered
 
 
 def edges_and_gradient(img: np.ndarray, sigma: float, quantiles: tuple[float, float]):
@@ -32,7 +33,7 @@ def edges_and_gradient(img: np.ndarray, sigma: float, quantiles: tuple[float, fl
 
 
 def find_eyelid(ey, ex, gy, gx, pupil: Circle, iris: Circle, upper: bool, curvature: float,
-                 min_support: float) -> Parabola | None:
+                min_support: float, memo: StepMemo | None = None) -> Parabola | None:
     """The eyelid margin over the iris by a Hough transform for parabolas ``y = y0 + a (x − x0)²``.
 
     Masek fits lines to the eyelids (a horizontal cut at the line's lowest point then masks everything
@@ -41,7 +42,8 @@ def find_eyelid(ey, ex, gy, gx, pupil: Circle, iris: Circle, upper: bool, curvat
     a pupil radius below the pupil centre, and not on the pupil circle (whose top and bottom arcs are
     parabola-like too; the limbus is excluded by staying 2 px inside it).  The apex ``x0`` is searched within
     ±0.3 r of the iris centre, ``|a|`` within ``[0, curvature / r]``.  The best parabola is kept when the edges
-    cover at least ``min_support`` of the columns it spans inside the iris.
+    cover at least ``min_support`` of the columns it spans inside the iris.  The Hough transform depends on the
+    voters alone (:func:`lid_hough`, reused through ``memo`` where they are byte-identical).
     """
     xp, yp, rp = pupil
     xi, yi, ri = iris
@@ -57,7 +59,14 @@ def find_eyelid(ey, ex, gy, gx, pupil: Circle, iris: Circle, upper: bool, curvat
     sel = (np.abs(gy) >= np.abs(gx)) & side & (d_iris < ri - 2) & (np.abs(d_pupil - rp) > 3)
     if not sel.any():
         return None
-    x, y = ex[sel].astype(float), ey[sel].astype(float)
+    return remembered(memo, lid_hough, ex[sel].astype(float), ey[sel].astype(float), iris, float(split), bool(upper),
+                      float(curvature), float(min_support))
+
+
+def lid_hough(x: np.ndarray, y: np.ndarray, iris: Circle, split: float, upper: bool, curvature: float,
+              min_support: float) -> Parabola | None:
+    """:func:`find_eyelid`'s parabola Hough transform of the voting edge pixels ``(x, y)``."""
+    xi, yi, ri = iris
     sign = 1.0 if upper else -1.0
     x0s = xi + ri * np.array([-0.3, -0.15, 0.0, 0.15, 0.3])
     As = sign * np.linspace(0.0, curvature / ri, 11)

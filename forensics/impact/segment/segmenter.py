@@ -7,6 +7,7 @@ ellipsopolar transforms, :mod:`~forensics.impact.segment.wahet`), the reference 
 from __future__ import annotations
 
 import hashlib
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,6 +17,7 @@ import numpy as np
 from forensics._shared.errors import UsageError
 from forensics.impact.segment.caht import segment_caht
 from forensics.impact.segment.common import Segmentation
+from forensics.impact.segment.memo import StepMemo
 from forensics.impact.segment.normalise import normalise
 from forensics.impact.segment.wahet import segment_wahet
 
@@ -37,6 +39,11 @@ def segmentation_function(method: str) -> Callable[..., Segmentation]:
         return SEGMENTATIONS[method]
     except KeyError:
         raise UsageError(f"unknown segmentation {method!r}; choose from {', '.join(SEGMENTATIONS)}") from None
+
+
+def takes_memo(method: str) -> bool:
+    """Whether the segmentation called ``method`` can reuse steps through a ``memo`` (:class:`StepMemo`)."""
+    return "memo" in inspect.signature(segmentation_function(method)).parameters
 
 
 def segment_iris(image: np.ndarray, method: str = DEFAULT_SEGMENTATION, **params: Any) -> Segmentation:
@@ -77,6 +84,7 @@ class Segmenter:
     _key: bytes | None = field(default=None, init=False, repr=False, compare=False)
     _seg: Segmentation | None = field(default=None, init=False, repr=False, compare=False)
     _bands: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _steps: dict | None = field(default=None, init=False, repr=False, compare=False)
     #: Segmentations actually computed (cache misses); for tests and diagnostics.
     computed: int = field(default=0, init=False, compare=False)
 
@@ -91,13 +99,24 @@ class Segmenter:
         hsh.update(repr((a.shape, a.dtype.str)).encode())
         return hsh.digest()
 
-    def segment(self, image: np.ndarray) -> Segmentation:
-        """The segmentation of ``image`` (cached)."""
+    def segment(self, image: np.ndarray, memo: StepMemo | None = None) -> Segmentation:
+        """The segmentation of ``image`` (cached).
+
+        With a ``memo`` a segmentation that can (:func:`takes_memo`) reuses its costly steps where their inputs
+        are byte-identical to those of the memo's earlier entries, with the same result; the memo collects the
+        entries of this image (also on a cache hit).
+        """
         key = self.image_key(image)
         if key != self._key or self._seg is None:
-            seg = segment_iris(image, self.method, **self.segment_params)
+            params = dict(self.segment_params)
+            if memo is not None and takes_memo(self.method):
+                params["memo"] = memo
+            seg = segment_iris(image, self.method, **params)
             self._key, self._seg, self._bands = key, seg, {}
+            self._steps = dict(memo.entries) if memo is not None else None
             self.computed += 1
+        elif memo is not None and self._steps is not None:
+            memo.entries.update(self._steps)
         return self._seg
 
     def unwrap(self, image: np.ndarray, radial: int | None = None, angular: int | None = None
@@ -121,5 +140,5 @@ class Segmenter:
     def __getstate__(self) -> dict[str, Any]:
         # The cache is worth nothing in another process: do not ship it.
         state = self.__dict__.copy()
-        state.update(_key=None, _seg=None, _bands={})
+        state.update(_key=None, _seg=None, _bands={}, _steps=None)
         return state
