@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fixtures.darkseries import DarkSeriesDesign, make_dark_series
+from forensics.fixtures.darkseries import DarkSeriesDesign, make_dark_series
 from forensics.check.measurements import full_well_level, load_measurements
 from forensics.check.pipeline import base_model, prepare, run_check
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fixtures.darkseries import DarkSeriesDesign, make_dark_series
+from forensics.fixtures.darkseries import DarkSeriesDesign, make_dark_series
 from forensics.check.pipeline import base_model, prepare, run_check
 
 #: the fixture's CCD integrates 1 s more during its read-out; hot pixels double as the bulk does (the model's law),

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -45,6 +46,14 @@ def test_defects_detect_on_a_dark_series(series, cli_json, cli, tmp_path):
     assert code == 0 and "hot pixels:" in text and "T_d" in text
 
 
+def _linked(folder: Path, to: Path) -> Path:
+    """A folder of links to every FITS frame of ``folder`` (frames can then be replaced without touching it)."""
+    to.mkdir()
+    for path in folder.glob("*.fits"):
+        (to / path.name).symlink_to(path)
+    return to
+
+
 def test_single_temperature_series_needs_a_law(series, cli, cli_json, tmp_path):
     folder, _ = series
     warm = tmp_path / "warm"
@@ -81,10 +90,7 @@ def test_growth_and_dating_from_dark_series(tmp_path, cli_json):
 
 def test_bad_fits_in_a_series_is_named(series, cli, tmp_path):
     folder, _ = series
-    broken = tmp_path / "broken"
-    broken.mkdir()
-    for path in folder.glob("*.fits"):
-        (broken / path.name).symlink_to(path)
+    broken = _linked(folder, tmp_path / "broken")
     victim = sorted(folder.glob("dark*.fits"))[0]
     (broken / victim.name).unlink()
     (broken / victim.name).write_bytes(victim.read_bytes()[:5000])  # truncated
@@ -132,10 +138,7 @@ def test_a_law_of_another_binning_is_refused(series, cli, cli_json, tmp_path):
 
 def test_a_series_mixing_binnings_is_refused(series, cli, tmp_path):
     folder, _ = series
-    mixed = tmp_path / "mixed"
-    mixed.mkdir()
-    for path in folder.glob("*.fits"):
-        (mixed / path.name).symlink_to(path)
+    mixed = _linked(folder, tmp_path / "mixed")
     from astropy.io import fits
 
     odd = sorted(mixed.glob("dark*.fits"))[0]

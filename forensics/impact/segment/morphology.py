@@ -51,32 +51,32 @@ def _shifted_rows(a: np.ndarray, dy: int, fill: bool) -> np.ndarray:
 def grow(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
     """``ndimage.binary_dilation(mask, structure)`` for a symmetric structure whose rows are centred runs (a
     disc, a diamond, a cross, a square), by 1-D running maxima; other structures go to ``ndimage``."""
-    runs = _row_runs(structure)
-    if runs is None or mask.ndim != 2:
-        return ndimage.binary_dilation(mask, structure=structure)
-    flat = np.ascontiguousarray(mask, bool).view(np.uint8)
-    out = np.zeros(mask.shape, bool)
-    by_width: dict[int, np.ndarray] = {}
-    for dy, half in runs:
-        if half not in by_width:
-            by_width[half] = ndimage.maximum_filter1d(flat, 2 * half + 1, axis=1, mode="constant", cval=0).view(bool)
-        out |= _shifted_rows(by_width[half], dy, False)
-    return out
+    return _by_row_runs(mask, structure, ndimage.binary_dilation, ndimage.maximum_filter1d, dilate=True)
 
 
 def shrink(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
     """``ndimage.binary_erosion(mask, structure)`` (nothing beyond the edges) for a structure :func:`grow` takes,
     by 1-D running minima; other structures go to ``ndimage``."""
+    return _by_row_runs(mask, structure, ndimage.binary_erosion, ndimage.minimum_filter1d, dilate=False)
+
+
+def _by_row_runs(mask: np.ndarray, structure: np.ndarray, whole, running, dilate: bool) -> np.ndarray:
+    """The dilation (``dilate``) or erosion of ``mask`` by ``structure`` as the union or intersection of its rows'
+    running extrema (``running``), each shifted by its row's offset; ``whole`` (ndimage's own) where the
+    structure's rows are not centred runs."""
     runs = _row_runs(structure)
     if runs is None or mask.ndim != 2:
-        return ndimage.binary_erosion(mask, structure=structure)
+        return whole(mask, structure=structure)
     flat = np.ascontiguousarray(mask, bool).view(np.uint8)
-    out = np.ones(mask.shape, bool)
+    out = np.zeros(mask.shape, bool) if dilate else np.ones(mask.shape, bool)
     by_width: dict[int, np.ndarray] = {}
     for dy, half in runs:
         if half not in by_width:
-            by_width[half] = ndimage.minimum_filter1d(flat, 2 * half + 1, axis=1, mode="constant", cval=0).view(bool)
-        out &= _shifted_rows(by_width[half], dy, False)
+            by_width[half] = running(flat, 2 * half + 1, axis=1, mode="constant", cval=0).view(bool)
+        if dilate:
+            out |= _shifted_rows(by_width[half], dy, False)
+        else:
+            out &= _shifted_rows(by_width[half], dy, False)
     return out
 
 
