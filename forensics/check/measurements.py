@@ -792,19 +792,46 @@ FULL_WELL_KEPT = 0.5
 def full_well_level(mean_all: np.ndarray, groups: Sequence[Group], interior: np.ndarray) -> float | None:
     """The readout from which hot pixels saturate in dark frames, or None.
 
-    A cooled CCD's full well (or its anti-blooming drain) fills before the converter's top: a very hot pixel's dark
-    signal grows with the exposure until ≈ 61,000–65,000 ADU and then stays there (the 2017 STL-1001E: 47 pixels in
-    the 300 s dark at −5 °C, e.g. 7,190, 12,924, 18,911, 36,333, 63,436, 62,403 ADU at 10 … 300 s).  Such a pixel's
-    readouts do not follow the model's linear dark signal, and the fit followed them for ever (the check of
-    a tile with one of them still moving after 24 cycles).  A pixel whose excess fell back instead (a cosmic-ray
-    hit or a telegraph pixel's high state in the shorter exposure) is not saturated.  Unlike the atom of :func:`saturation_level` the level
-    differs from pixel to pixel, so it is found from the pixels' own series: between two dark conditions of one
-    epoch, gain and temperature (within 1 °C) with exposures t₀ < t₁ < t₂ (t₀ = 0: the biases), a pixel whose own
-    rate between t₀ and t₁ — a rise of at least :data:`FULL_WELL_CLEAR` times the frames' robust spread at t₁ —
-    predicts a growth g from t₁ to t₂, yet grew by less than :data:`FULL_WELL_GROWTH`·g, reads saturated at t₂.  The level is the lowest such
-    readout at and above which most of the readouts at t₂ are saturated ones (:data:`FULL_WELL_SHARE`; at least
-    :data:`FULL_WELL_PIXELS`): a random-telegraph pixel that stalls at a few thousand ADU lies among thousands of
-    hot pixels still growing, the full well above all of them.  Needs three dark exposures (biases included) per temperature.
+    A cooled CCD's full well (or its anti-blooming drain) fills before the converter's top: a very hot pixel's
+    dark signal grows with the exposure to ≈ 61,000–65,000 ADU and then stays there (the 2017 STL-1001E: 7,190,
+    12,924, 18,911, 36,333, 63,436, 62,403 ADU at 10 … 300 s).  Such readouts do not follow the model's linear
+    dark signal, and the fit followed them for ever (a tile with one such pixel still moving after 24 cycles).
+
+    Unlike the atom of :func:`saturation_level` the level differs from pixel to pixel, so it is found from the
+    pixels' own series.  For three dark conditions of one epoch, gain and temperature (within 1 °C) with
+    exposures t₀ < t₁ < t₂ (t₀ = 0: the biases), a pixel reads saturated at t₂ when its rise from t₀ to t₁ is
+    clear (at least :data:`FULL_WELL_CLEAR` times the frames' robust spread at t₁), the growth that rise predicts
+    from t₁ to t₂ falls short by half (:data:`FULL_WELL_GROWTH`), and it keeps at least half its rise
+    (:data:`FULL_WELL_KEPT`: a cosmic-ray hit or a telegraph pixel's high state at t₁ loses it).  The level is the
+    lowest such readout at and above which most readouts at t₂ are saturated ones (:data:`FULL_WELL_SHARE`, at
+    least :data:`FULL_WELL_PIXELS` of them): a telegraph pixel stalling at a few thousand ADU lies among thousands
+    of hot pixels still growing, the full well above them all.
+
+    Parameters
+    ----------
+    mean_all
+        Per condition, every pixel's mean readout (conditions × H × W).
+    groups
+        The conditions (their ``index`` into ``mean_all``).
+    interior
+        The pixels to look at (H × W).
+
+    Returns
+    -------
+    float or None
+        The level in DN, or None without three dark exposures at one temperature or without saturated pixels.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace as G
+    >>> t = np.array([0.0, 10.0, 20.0])
+    >>> rates = np.r_[np.full(95, 1.0), np.full(5, 3000.0)]       # five pixels fill a 40,000 DN well by 20 s
+    >>> means = np.minimum(1000.0 + rates[None] * t[:, None], 40000.0).reshape(3, 10, 10)
+    >>> means = means + np.random.default_rng(0).normal(0, 1, means.shape)
+    >>> groups = [G(index=i, subject="dark", exposure_s=x, epoch=0, iso=None, temperature_c=-10.0, scenes=False)
+    ...           for i, x in enumerate(t)]
+    >>> full_well_level(means, groups, np.ones((10, 10), bool)) > 39_990
+    True
     """
     from forensics.io.dataset import is_dark_subject
 
