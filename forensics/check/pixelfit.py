@@ -72,8 +72,9 @@ def drop_unscored_misfits(wp: np.ndarray, w: np.ndarray, y: np.ndarray, mu: np.n
     return True
 
 
-def recentre(local: list, centred: list[bool]) -> bool:
-    """Shift, in place, each random-effect pattern to a zero mean over its pixels; True if any moved.
+def recentre(local: list, centred: list[bool], scored: np.ndarray | None = None) -> bool:
+    """Shift, in place, each random-effect pattern to a zero mean over its pixels (over the ``scored`` ones, an
+    ``(H, W)`` mask, where given); True if any moved.
 
     The least-squares steps keep the sum of such a pattern's values (their common mode belongs to a global
     parameter), so whatever moved it otherwise stays: values zeroed at dropped pixels (refitted the next cycle,
@@ -87,7 +88,10 @@ def recentre(local: list, centred: list[bool]) -> bool:
         if used.size < 2:
             continue
         vals = p.values[used]
-        mean = float(np.mean(vals, dtype=np.float64))
+        # the mean over the scored pixels: the never-scored border is not searched for defects, and its hot pixels'
+        # values would move the mean that belongs to the global parameter
+        inner = p.blocks[scored & (p.blocks >= 0)] if scored is not None else None
+        mean = float(np.mean(p.values[inner] if inner is not None and inner.size >= 2 else vals, dtype=np.float64))
         if abs(mean) > 1e-6 * max(float(np.std(vals, dtype=np.float64)), 1e-30):
             p.values[used] = vals - np.asarray(mean, vals.dtype)
             moved = True
@@ -134,6 +138,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     # fault of its own; afterwards for good, so that a pixel on the edge of the test cannot keep χ² moving);
     # χ² and the global parameters see the scored pixels only
     has_unscored = pixels.pattern_weight is not w
+    scored = np.any(w > 0, axis=0)
     wp = pixels.pattern_weight.copy() if has_unscored else w
     effects = list(effects)
 
@@ -158,7 +163,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     def refit_local(dev: Device, X_local: list[np.ndarray], mu: np.ndarray) -> np.ndarray:
         """One Gauss–Newton step of the pixel-local patterns from the consistent prediction ``mu``: jointly
         with the neighbours' term where dark frames make it matter, else pixel by pixel."""
-        if recentre(local, centred):
+        if recentre(local, centred, scored):
             mu = consistent(dev)
         if coupling is not None:
             return _coupled_refit(consistent, dev, local, X_local, *coupling, wp, y, mu, centred)
