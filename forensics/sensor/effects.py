@@ -421,10 +421,14 @@ class DarkCurrent(Effect):
         return self.offset
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
-        factor = thermal_factor(ctx, self.name, self.t_ref, self.t_double)
+        return self.add_signal(signal, ctx, thermal_factor(ctx, self.name, self.t_ref, self.t_double), self.offset)
+
+    def add_signal(self, signal: np.ndarray, ctx: FrameContext, factor: float, offset: float = 0.0) -> np.ndarray:
+        """``signal`` plus ``offset`` and every pixel's rate × ``factor`` (the mean rate, the pixel's non-uniformity
+        value, a hot pixel's own rate): the dark signal of an integration that ``factor`` describes."""
         per_px = ctx.device.state.get(self.key)
-        if self.offset or self.rate or per_px is not None:
-            dark = self.offset + (self.rate + (per_px if per_px is not None else 0.0)) * factor
+        if offset or self.rate or per_px is not None:
+            dark = offset + (self.rate + (per_px if per_px is not None else 0.0)) * factor
             signal += per_pixel(np.asarray(dark, signal.dtype), signal)
         sites = ctx.defects(PARTIAL)
         if len(sites) and self._defect_key in sites.extra:
@@ -460,14 +464,7 @@ class ReadoutDark(Effect):
             return signal
         # DarkCurrent's own term for an exposure of t_r at this frame's temperature (its offset excepted)
         factor = self.t_read * 2.0 ** ((ctx.require("temperature_c", self.name) - dark.t_ref) / dark.t_double)
-        per_px = ctx.device.state.get(dark.key)
-        dark_rate = dark.rate + (per_px if per_px is not None else 0.0)
-        signal += per_pixel(np.asarray(dark_rate * factor, signal.dtype), signal)
-        sites = ctx.defects(PARTIAL)
-        if len(sites) and dark._defect_key in sites.extra:
-            pixel_view(signal)[sites.y * ctx.shape[1] + sites.x] += (sites.extra[dark._defect_key]
-                                                                    * factor).astype(signal.dtype)[:, None]
-        return signal
+        return dark.add_signal(signal, ctx, factor)
 
 
 @register_effect
