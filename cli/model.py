@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from typing import Any
 
 from forensics.cli.common import (
@@ -64,6 +65,9 @@ def register(sub) -> None:
                             "worker; frames of any size) and combine them: the global parameters by their "
                             "information, with a test of whether the tiles agree on each (a dark rate or gain that "
                             "changes across the sensor); with --auto the effects are chosen on the central tile")
+    check.add_argument("--scratch", default=None, metavar="DIR",
+                       help="with --tiles: where the frames are decoded once for the tiles (default the system's "
+                            "temporary directory; removed afterwards; needs room for every frame decoded)")
     add_input_options(check)
     add_execution_options(check)
     add_output_options(check)
@@ -114,6 +118,10 @@ def run_check(args: argparse.Namespace) -> int:
         refuse_existing(args.report, args.force)
     if args.tiles is not None:
         return _run_tiles(args)
+    if args.scratch is not None:
+        from forensics._shared.errors import UsageError
+
+        raise UsageError("--scratch is where --tiles decodes the frames once; without --tiles nothing is decoded twice")
     if args.auto:
         return _run_auto(args)
     if args.max_steps is not None:
@@ -163,6 +171,8 @@ def _run_tiles(args: argparse.Namespace) -> int:
         raise UsageError("--tiles checks the whole frame; --region checks a part of it: give one of them")
     if args.max_steps is not None and not args.auto:
         raise UsageError("--max-steps needs --auto")
+    if args.scratch is not None and not (os.path.isdir(args.scratch) and os.access(args.scratch, os.W_OK | os.X_OK)):
+        raise UsageError(f"--scratch {args.scratch}: not a writable directory; give one with room for the decoded frames")
     info(args, f"forensics model check --tiles {args.tiles}: reading {args.data} …")
     ds = open_input(args, args.data)
     add, sel = list(args.add), None
@@ -175,7 +185,7 @@ def _run_tiles(args: argparse.Namespace) -> int:
         # the tiles' fits start from the central tile's fitted values (each still fits to convergence)
         start = None if sel is None else start_values(sel.result.params)
         tiled = check_tiles(ds, add=add, size=args.tiles, rng=args.seed, progress=progress_for(args), executor=ex,
-                            start=start)
+                            start=start, scratch=args.scratch)
         execution = ex.info()
     if args.report:
         path = tiles_report(tiled, sel, title=f"Model check (--tiles {args.tiles}): {args.data}").write(

@@ -375,6 +375,7 @@ class ConditionFrames:
     crop: tuple[slice, slice]  #: the region analysed
     repeated: bool  #: two or more frames: the pixel channel's halves, residuals and noise traits are measured
     scenes: bool  #: already known to be different scenes (photographs pooled per epoch)
+    frame_cache: str | None = None  #: the frames decoded once (:mod:`forensics.io.framecache`), or None
 
 
 @dataclass
@@ -410,6 +411,7 @@ def condition_stats(item: ConditionFrames) -> ConditionStats | EmptyCondition:
     Content-free frames (constant, or clipped at the pixel type's floor or full scale: :func:`frame_problem`)
     are left out before they reach any statistic; a condition left with too few frames is an
     :class:`EmptyCondition`."""
+    from forensics.io.framecache import open_cached
     from forensics.io.images import read_image
 
     crop = item.crop
@@ -424,15 +426,18 @@ def condition_stats(item: ConditionFrames) -> ConditionStats | EmptyCondition:
     dtype = None
     excluded: list[tuple[int, str, str]] = []
     j = -1  # position among the frames kept
-    for k, (name, img) in enumerate(zip(item.names, prefetch(read_image(p) for p in item.paths))):
-        problem = frame_problem(img[crop])
+    frames = ((open_cached(item.frame_cache, p) for p in item.paths) if item.frame_cache is not None
+              else prefetch(read_image(p) for p in item.paths))
+    for k, (name, whole_frame) in enumerate(zip(item.names, frames)):
+        img = np.asarray(whole_frame[crop])  # a mapped frame: only the region's rows are read
+        problem = frame_problem(img)
         if problem is not None:  # clipped or constant: it would be taken for stuck pixels or a gain pattern
             excluded.append((k, name, problem))
             continue
         j += 1
         dtype = img.dtype if dtype is None else dtype
-        grey = grey_mean(img[crop], np.float64)
-        stacked = _stackable(img[crop], grey, stacked_dtype)
+        grey = grey_mean(img, np.float64)
+        stacked = _stackable(img, grey, stacked_dtype)
         stacked_dtype = stacked.dtype
         whole.add(stacked, name=name)
         halves[j % 2].add(stacked, name=name)
@@ -544,7 +549,8 @@ def load_measurements(data: Dataset | str | Path, border: int | None = None, epo
     single = single_dark_conditions(groups)
     notes += off_set_point(ds)
     items = [ConditionFrames(tuple(str(ds.frames[i].path) for i in g.frames),
-                             tuple(ds.frames[i].file for i in g.frames), crop, g.n >= 2, g.scenes) for g in groups]
+                             tuple(ds.frames[i].file for i in g.frames), crop, g.n >= 2, g.scenes, ds.frame_cache)
+             for g in groups]
     parts = resolve(executor).map(condition_stats, items, progress=progress, desc="conditions")
     return _assemble(ds, groups, repeated, parts, (crop[0].stop - crop[0].start, crop[1].stop - crop[1].start),
                      notes, has_time, epoch_times, border, single)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -520,7 +520,8 @@ def check_tile(data: Dataset, item: tuple[Tile, list[Any], np.random.SeedSequenc
 
 def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int = 256, rng: RngLike = 0,
                 n_sim: int = 199, progress: Progress = no_progress,
-                executor: Executor | None = None, start: dict[str, float] | None = None) -> TiledCheck:
+                executor: Executor | None = None, start: dict[str, float] | None = None,
+                scratch: str | Path | None = None) -> TiledCheck:
     """Check the base model plus ``add`` on every tile of the frames and combine the tiles (module docstring).
 
     Parameters
@@ -541,6 +542,10 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
         Global pixel parameters every tile's fit starts from (``effect.name`` → value, e.g. a fit of the central
         region: ``{p.label: p.value for p in result.params}``); default: the central tile is checked first and the
         others start from its values.  Each tile still fits to convergence.
+    scratch
+        Where the frames are decoded once for the tiles (:func:`~forensics.io.framecache.frame_cache`; default the
+        system's temporary directory, removed afterwards; on a cluster of several machines, storage every worker
+        sees).  Without room there every tile decodes the files itself, said in the warnings.
 
     Returns
     -------
@@ -552,8 +557,8 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
     >>> whole = check_tiles("darks/", add=["shot_noise", "dark_current"], size=256)  # doctest: +SKIP
     >>> [(p.estimate.label, p.estimate.value, p.p_same) for p in whole.params]      # doctest: +SKIP
     """
-    from forensics._shared.parallel import resolve
     from forensics.check.pipeline import resolve_effects
+    from forensics.io.framecache import frame_cache
 
     if size < MIN_TILE:
         raise UsageError(f"--tiles {size}: a tile needs at least {MIN_TILE} × {MIN_TILE} pixels (its 3-pixel border is "
@@ -565,19 +570,34 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
     root = rng if isinstance(rng, np.random.SeedSequence) else np.random.SeedSequence(
         rng if isinstance(rng, (int, np.integer)) else np.random.default_rng(rng).integers(2**63))
     seeds = root.spawn(len(tiles))
+    if len(tiles) == 1:
+        return combine(shape[:2], size, [check_tile(ds, (tiles[0], list(add), seeds[0], n_sim, start))])
+    # every tile reads every frame: decoded once, a tile costs its own pixels instead of whole frames
+    with frame_cache(ds, scratch, progress, executor) as (cached, why):
+        results = _run_tiles(cached, tiles, list(add), seeds, n_sim, start, progress, executor)
+    whole = combine(shape[:2], size, results)
+    return whole if why is None else replace(whole, warnings=[*whole.warnings, why])
+
+
+def _run_tiles(ds: Dataset, tiles: Sequence[Tile], add: list[Any], seeds: Sequence[np.random.SeedSequence],
+               n_sim: int, start: dict[str, float] | None, progress: Progress,
+               executor: Executor | None) -> list[TileResult]:
+    """Every tile's result in tile order: the central tile first in this process, where no ``start`` is given."""
+    from forensics._shared.parallel import resolve
+
     first: TileResult | None = None
-    centre = central_tile(tiles, shape)
-    if start is None and len(tiles) > 1:
+    centre = central_tile(tiles, ds.shape())
+    if start is None:
         # the central tile first, in this process: every other tile's fit starts from its values (a tile from the
         # nulls spends most of its cycles finding what every tile shares; each still fits to convergence)
-        first = check_tile(ds, (tiles[centre], list(add), seeds[centre], n_sim, None))
+        first = check_tile(ds, (tiles[centre], add, seeds[centre], n_sim, None))
         start = None if first.excluded else start_values(first.params)
-    items = [(t, list(add), s, n_sim, start) for i, (t, s) in enumerate(zip(tiles, seeds))
+    items = [(t, add, s, n_sim, start) for i, (t, s) in enumerate(zip(tiles, seeds))
              if not (first is not None and i == centre)]
     results = list(resolve(executor).map(check_tile, items, shared=ds, progress=progress, desc="tiles"))
     if first is not None:
         results.insert(centre, first)
-    return combine(shape[:2], size, results)
+    return results
 
 
 def start_values(params: Sequence[ParamEstimate]) -> dict[str, float]:

@@ -313,6 +313,9 @@ class Dataset:
     root: Path
     frames: list[Frame]
     has_manifest: bool = False
+    #: A directory of the frames decoded once (:func:`forensics.io.framecache.frame_cache`), or None: readers that
+    #: take parts of frames (a tile) map the decoded frame instead of decoding the file.
+    frame_cache: str | None = None
 
     def __len__(self) -> int:
         return len(self.frames)

@@ -203,3 +203,47 @@ def test_a_tile_that_could_not_be_checked_is_named_and_all_of_them_is_an_error()
     assert any("rows 8–15" in w and "content-free there" in w for w in whole.warnings)
     with pytest.raises(InputError, match="content-free there"):
         combine((16, 8), 8, [bad])
+
+
+def test_frames_decoded_once_give_the_same_tiles_and_leave_nothing_behind(flat_rate, tmp_path, monkeypatch):
+    """The tiles read the frames decoded once into scratch space (``forensics.io.framecache``): the results are
+    those of decoding the files in every tile, value for value, and the scratch directory is empty afterwards.
+    Where the decoded frames would not fit, the tiles decode the files themselves and the warnings say so."""
+    from forensics.io import framecache
+
+    folder, _, _ = flat_rate
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    cached = check_tiles(folder, add=ADD, size=48, scratch=scratch)
+    assert list(scratch.iterdir()) == []
+    monkeypatch.setattr(framecache, "FREE_MARGIN", 1e30)  # no disk has room: each tile decodes the files
+    direct = check_tiles(folder, add=ADD, size=48, scratch=scratch)
+    assert any("do not fit" in w for w in direct.warnings)
+    assert not any("do not fit" in w for w in cached.warnings)
+    assert [(p.estimate.value, p.estimate.se) for p in cached.params] == \
+        [(p.estimate.value, p.estimate.se) for p in direct.params]
+    assert [t.held_out for t in cached.tiles] == [t.held_out for t in direct.tiles]
+
+
+def test_a_cached_frame_is_the_decoded_file(tmp_path):
+    """The cache holds the decoder's values and dtype; a sub-dataset finds its frames' files (named by path)."""
+    from forensics.io.dataset import open_dataset
+    from forensics.io.framecache import frame_cache, open_cached
+    from forensics.io.images import read_image
+
+    make_dark_series(tmp_path / "d", 2, DarkSeriesDesign(shape=(20, 24), n_repeat_dark=2))
+    ds = open_dataset(tmp_path / "d")
+    with frame_cache(ds.subset([3, 1]), tmp_path) as (sub, why):
+        assert why is None and sub.frame_cache is not None
+        for f in sub.frames:
+            got, want = open_cached(sub.frame_cache, f.path), read_image(f.path)
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+    assert [p.name for p in tmp_path.iterdir()] == ["d"]
+
+
+def test_scratch_must_be_a_writable_directory_and_needs_tiles(flat_rate, tmp_path, capsys):
+    folder, _, _ = flat_rate
+    for argv in (["--tiles", "48", "--scratch", str(tmp_path / "missing")], ["--scratch", str(tmp_path)]):
+        assert main(["model", "check", str(folder), "--add", "shot_noise", "--quiet", *argv]) == 2
+        err = capsys.readouterr().err
+        assert "--scratch" in err and len(err.strip().splitlines()) == 1
