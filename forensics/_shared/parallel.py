@@ -274,6 +274,13 @@ class Executor:
         self.close()
 
     @property
+    def local_disk(self) -> bool:
+        """Whether every worker runs on this machine (in-process, local processes, or the local cluster this
+        executor started), so that a file written here is readable by all of them; False for a Dask scheduler
+        given by address, whose workers may be anywhere."""
+        return self.backend != "dask" or self._cluster is not None
+
+    @property
     def client(self) -> Any:
         """The :class:`distributed.Client` of the Dask backend (None otherwise)."""
         return self._client

@@ -544,8 +544,10 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
         others start from its values.  Each tile still fits to convergence.
     scratch
         Where the frames are decoded once for the tiles (:func:`~forensics.io.framecache.frame_cache`; default the
-        system's temporary directory, removed afterwards; on a cluster of several machines, storage every worker
-        sees).  Without room there every tile decodes the files itself, said in the warnings.
+        system's temporary directory, removed afterwards).  With a Dask scheduler given by address (workers that
+        may be on other machines) the frames are decoded once only where ``scratch`` is given (it must be storage
+        every worker sees).  Without room there, or without ``scratch`` on such a cluster, every tile decodes the
+        files itself, said in the warnings.
 
     Returns
     -------
@@ -572,9 +574,15 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
     seeds = root.spawn(len(tiles))
     if len(tiles) == 1:
         return combine(shape[:2], size, [check_tile(ds, (tiles[0], list(add), seeds[0], n_sim, start))])
-    # every tile reads every frame: decoded once, a tile costs its own pixels instead of whole frames
-    with frame_cache(ds, scratch, progress, executor) as (cached, why):
-        results = _run_tiles(cached, tiles, list(add), seeds, n_sim, start, progress, executor)
+    if scratch is None and executor is not None and not executor.local_disk:
+        # the workers of a scheduler given by address may not see this machine's temporary directory
+        results = _run_tiles(ds, tiles, list(add), seeds, n_sim, start, progress, executor)
+        why = ("every tile decodes the frames itself (the cluster's workers may not see this machine's temporary "
+               "directory): give scratch space every worker sees (--scratch) to decode them once")
+    else:
+        # every tile reads every frame: decoded once, a tile costs its own pixels instead of whole frames
+        with frame_cache(ds, scratch, progress, executor) as (cached, why):
+            results = _run_tiles(cached, tiles, list(add), seeds, n_sim, start, progress, executor)
     whole = combine(shape[:2], size, results)
     return whole if why is None else replace(whole, warnings=[*whole.warnings, why])
 

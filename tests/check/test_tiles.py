@@ -225,6 +225,21 @@ def test_frames_decoded_once_give_the_same_tiles_and_leave_nothing_behind(flat_r
     assert [t.held_out for t in cached.tiles] == [t.held_out for t in direct.tiles]
 
 
+def test_workers_that_may_not_see_this_machine_decode_the_files_themselves(flat_rate):
+    """A Dask scheduler given by address may have its workers on other machines: without scratch space named,
+    nothing is decoded into this machine's temporary directory, and the warnings say how to get it."""
+    from forensics._shared.parallel import Executor
+
+    class Remote(Executor):
+        local_disk = False  # as for ``--scheduler tcp://…``
+
+    folder, tiled, _ = flat_rate
+    assert Executor("in-process").local_disk and Executor("processes", 2).local_disk
+    remote = check_tiles(folder, add=ADD, size=48, executor=Remote("in-process"))
+    assert any("--scratch" in w for w in remote.warnings)
+    assert [p.estimate.value for p in remote.params] == [p.estimate.value for p in tiled.params]
+
+
 def test_a_cached_frame_is_the_decoded_file(tmp_path):
     """The cache holds the decoder's values and dtype; a sub-dataset finds its frames' files (named by path)."""
     from forensics.io.dataset import open_dataset
