@@ -2,7 +2,7 @@
 """The model check at the field's standard data and at real sensor sizes, side by side with emva1288 (issue 27).
 
 Every workload of the issue's table runs here in child processes, each timed as a whole process (wall clock,
-CPU seconds, peak RSS from ``wait4``), with the machine's load average beside it:
+CPU seconds, peak memory of the process and its workers), with the machine's load average beside it:
 
 ``standard``  an EMVA 1288 exposure-variant series made by ``emva1288``'s own ``DatasetGenerator``
               (``forensics.fixtures.emva.make_standard_series``: 320 × 240, 12 bit, 20 steps, 8 spatial frames,
@@ -52,14 +52,36 @@ EMVA_SCRIPT = str(Path(__file__).resolve().with_name("emva1288_analysis.py"))
 LARGE = {"1MP": (1000, 1000), "12MP": (3000, 4000), "24MP": (4000, 6000)}
 
 
+def session_rss_mb(sid: int) -> float:
+    """The summed RSS (MB) of every process of session ``sid`` (a child and all its workers), from /proc."""
+    total = 0
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+            if int(fields[3]) == sid:  # field 6 of stat: the session id
+                total += int(fields[21]) * os.sysconf("SC_PAGE_SIZE")  # field 24: rss in pages
+        except (OSError, ValueError, IndexError):
+            continue
+    return total / 2**20
+
+
 def measure(cmd: list[str], timeout: float, cwd: str | None = None, env: dict | None = None) -> dict:
-    """Run ``cmd`` as a child process: wall seconds, CPU seconds (user + system), peak RSS (MB, the child's own
-    ``ru_maxrss`` from ``wait4``), exit code, stdout; killed after ``timeout`` seconds (then ``timed_out``)."""
+    """Run ``cmd`` as a child process: wall seconds, CPU seconds (user + system, from ``wait4``: the child and the
+    descendants it reaped), peak memory (MB: the summed RSS of the child's whole session — it and its workers —
+    sampled every 0.25 s), exit code, stdout; killed after ``timeout`` seconds (then ``timed_out``).
+
+    Why sampled: ``wait4``'s ``ru_maxrss`` is not the child's own — on Linux it carried the peak of an earlier,
+    larger child of this process (emva1288's analysis of 12 MP frames, 18.8 GB, was reported for the check run
+    after it too)."""
     load = os.getloadavg()[0]
     out = tempfile.TemporaryFile()
     started = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.PIPE, cwd=cwd, env=env, start_new_session=True)
     timed_out = False
+    peak, sampled = 0.0, 0.0
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid:
@@ -69,13 +91,15 @@ def measure(cmd: list[str], timeout: float, cwd: str | None = None, env: dict | 
             os.killpg(proc.pid, signal.SIGKILL)
             pid, status, usage = os.wait4(proc.pid, 0)
             break
+        if time.perf_counter() - sampled >= 0.25:
+            peak, sampled = max(peak, session_rss_mb(proc.pid)), time.perf_counter()
         time.sleep(0.05)
     wall = time.perf_counter() - started
     proc.returncode = os.waitstatus_to_exitcode(status)
     stderr = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     out.seek(0)
     stdout = out.read().decode(errors="replace")
-    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "rss_mb": usage.ru_maxrss / 1024.0,
+    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "rss_mb": peak,
             "rc": proc.returncode, "timed_out": timed_out, "load_before": load, "load_after": os.getloadavg()[0],
             "stdout": stdout, "stderr": stderr[-2000:]}
 

@@ -3,7 +3,7 @@
 A check of the whole frame in tiles (:mod:`forensics.check.tiles`) reads every frame once per tile.  A PNG, TIFF
 or FITS file cannot be decoded in parts, so each tile would decode every whole frame: the reading grows with the
 number of tiles × the frame's size, i.e. with the square of the frame (12 MP × 36 frames in 768 tiles of 125²:
-≈ 27,600 decodes of 0.44 s, 3.4 CPU hours, against ≈ 16 CPU s once).  Here every frame is decoded once into a
+≈ 27,600 decodes of 0.2 s, 1.5 CPU hours, against 7 CPU s once).  Here every frame is decoded once into a
 ``.npy`` file of its native dtype; a reader maps it (``numpy.load(mmap_mode="r")``) and slicing a tile touches
 only the tile's rows (a few kB each).  The values are the decoder's, bit for bit, so every result is the same
 as reading the files.
