@@ -99,8 +99,14 @@ def frame_cache(ds: Dataset, scratch: str | os.PathLike | None = None, progress:
     directory = tempfile.mkdtemp(prefix="forensics-frames-", dir=base)
     try:
         items = [(str(f.path), os.path.join(directory, cached_name(f.path))) for f in ds.frames]
-        for _ in resolve(executor).map(decode_to, items, progress=progress, desc="decoding frames"):
-            pass
+        try:
+            for _ in resolve(executor).map(decode_to, items, progress=progress, desc="decoding frames"):
+                pass
+        except OSError as exc:  # the disk filled up after all (frames larger decoded than their headers say)
+            shutil.rmtree(directory, ignore_errors=True)
+            yield ds, (f"decoding the frames into {base} failed ({exc.strerror or exc}): every tile decodes the files "
+                       "itself (give scratch space with room for them)")
+            return
         yield replace(ds, frame_cache=directory), None
     finally:
         shutil.rmtree(directory, ignore_errors=True)

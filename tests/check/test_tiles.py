@@ -262,3 +262,22 @@ def test_scratch_must_be_a_writable_directory_and_needs_tiles(flat_rate, tmp_pat
         assert main(["model", "check", str(folder), "--add", "shot_noise", "--quiet", *argv]) == 2
         err = capsys.readouterr().err
         assert "--scratch" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_disk_that_fills_up_while_decoding_leaves_the_files_to_the_tiles(tmp_path, monkeypatch):
+    """A write that fails (the disk full after all) removes what was written and hands back the dataset as it
+    was, with the reason; the tiles then decode the files themselves."""
+    import errno
+
+    from forensics.io import framecache
+    from forensics.io.dataset import open_dataset
+
+    def full(item):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    make_dark_series(tmp_path / "d", 2, DarkSeriesDesign(shape=(20, 24), n_repeat_dark=2))
+    ds = open_dataset(tmp_path / "d")
+    monkeypatch.setattr(framecache, "decode_to", full)
+    with framecache.frame_cache(ds, tmp_path) as (same, why):
+        assert same is ds and "No space left" in why
+    assert [p.name for p in tmp_path.iterdir()] == ["d"]
