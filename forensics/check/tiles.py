@@ -576,25 +576,25 @@ def check_tiles(data: Dataset | str | Path, add: Sequence[Any] = (), size: int =
         return combine(shape[:2], size, [check_tile(ds, (tiles[0], list(add), seeds[0], n_sim, start))])
     if scratch is None and executor is not None and not executor.local_disk:
         # the workers of a scheduler given by address may not see this machine's temporary directory
-        results = _run_tiles(ds, tiles, list(add), seeds, n_sim, start, progress, executor)
+        results = _run_tiles(ds, shape, tiles, list(add), seeds, n_sim, start, progress, executor)
         why = ("every tile decodes the frames itself (the cluster's workers may not see this machine's temporary "
                "directory): give scratch space every worker sees (--scratch) to decode them once")
     else:
         # every tile reads every frame: decoded once, a tile costs its own pixels instead of whole frames
         with frame_cache(ds, scratch, progress, executor) as (cached, why):
-            results = _run_tiles(cached, tiles, list(add), seeds, n_sim, start, progress, executor)
+            results = _run_tiles(cached, shape, tiles, list(add), seeds, n_sim, start, progress, executor)
     whole = combine(shape[:2], size, results)
     return whole if why is None else replace(whole, warnings=[*whole.warnings, why])
 
 
-def _run_tiles(ds: Dataset, tiles: Sequence[Tile], add: list[Any], seeds: Sequence[np.random.SeedSequence],
+def _run_tiles(ds: Dataset, shape: Sequence[int], tiles: Sequence[Tile], add: list[Any], seeds: Sequence[np.random.SeedSequence],
                n_sim: int, start: dict[str, float] | None, progress: Progress,
                executor: Executor | None) -> list[TileResult]:
     """Every tile's result in tile order: the central tile first in this process, where no ``start`` is given."""
     from forensics._shared.parallel import resolve
 
     first: TileResult | None = None
-    centre = central_tile(tiles, ds.shape())
+    centre = central_tile(tiles, shape)
     if start is None:
         # the central tile first, in this process: every other tile's fit starts from its values (a tile from the
         # nulls spends most of its cycles finding what every tile shares; each still fits to convergence)

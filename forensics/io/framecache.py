@@ -22,11 +22,11 @@ import tempfile
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from typing import TYPE_CHECKING
-
+from forensics._shared.atomic import atomic_file
 from forensics._shared.progress import Progress, no_progress
 from forensics.io.dataset import Dataset
 
@@ -48,18 +48,15 @@ def cached_name(path: str | os.PathLike) -> str:
     return hashlib.sha256(str(path).encode("utf-8", "surrogatepass")).hexdigest()[:24] + ".npy"
 
 
-def decode_to(item: tuple[str, str]) -> int:
-    """Decode the frame at ``item[0]`` into the ``.npy`` file ``item[1]`` (written whole under a temporary name,
-    then renamed); its size in bytes.  A work item (module-level)."""
+def decode_to(item: tuple[str, str]) -> None:
+    """Decode the frame at ``item[0]`` into the ``.npy`` file ``item[1]`` (written atomically).  A work item
+    (module-level)."""
     from forensics.io.images import read_image
 
     source, target = item
     pixels = read_image(source)
-    partial = target + ".part"
-    with open(partial, "wb") as fh:
+    with atomic_file(target) as fh:
         np.save(fh, pixels, allow_pickle=False)
-    os.replace(partial, target)
-    return int(pixels.nbytes)
 
 
 def decoded_bytes(ds: Dataset) -> int:
@@ -103,7 +100,7 @@ def frame_cache(ds: Dataset, scratch: str | os.PathLike | None = None, progress:
             for _ in resolve(executor).map(decode_to, items, progress=progress, desc="decoding frames"):
                 pass
         except OSError as exc:  # the disk filled up after all (frames larger decoded than their headers say)
-            shutil.rmtree(directory, ignore_errors=True)
+            shutil.rmtree(directory, ignore_errors=True)  # now: the tiles run before the ``finally`` below
             yield ds, (f"decoding the frames into {base} failed ({exc.strerror or exc}): every tile decodes the files "
                        "itself (give scratch space with room for them)")
             return
