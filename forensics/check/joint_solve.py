@@ -61,7 +61,7 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
                  centred: list[bool], kernel: Callable[[np.ndarray], np.ndarray] = kernel_estimate,
                  kernel_t: Callable[..., np.ndarray] = kernel_transpose,
                  tol: float = RELATIVE_TOLERANCE, max_iter: int = MAX_ITERATIONS,
-                 cache: dict | None = None) -> CoupledStep:
+                 cache: dict | None = None, members: np.ndarray | None = None) -> CoupledStep:
     """The weighted least-squares step Δ of the linearised model above.
 
     Parameters
@@ -80,17 +80,19 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
     cache
         A dict kept by the caller for one set of ``X``, ``Z``, ``F`` (a fit cycle): the preconditioner is built
         once per content of ``weight`` in it (:func:`_preconditioner`).
+    members
+        ``(H, W)``: the pixels whose ``centred`` values keep the zero sum (default all; the others are free).
     """
     k = len(X)
     shape = X[0].shape[1:]
     coupled = [r for r in range(F.shape[0]) if np.any(F[r]) and any(np.any(z[r]) for z in Z)]
     inv = _cached_preconditioner(X, Z, F, weight, coupled, kernel_t, cache)
     centred_mask = np.asarray(centred, bool)
-    gram = common_mode_gram(inv, centred_mask) if centred_mask.any() else None
+    gram = common_mode_gram(inv, centred_mask, members) if centred_mask.any() else None
 
     def precondition(g: np.ndarray) -> np.ndarray:
         z = np.einsum("...ij,...j->...i", inv, np.moveaxis(g, 0, -1))
-        shift = common_mode(inv, z, centred_mask, gram)
+        shift = common_mode(inv, z, centred_mask, gram, members)
         if shift is not None:
             z = z + shift
         return np.moveaxis(z, -1, 0)

@@ -57,7 +57,8 @@ def dead_columns(A: np.ndarray) -> np.ndarray:
 
 
 def common_mode(inv: np.ndarray, coef: np.ndarray, centred: np.ndarray,
-                gram: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray | None:
+                gram: tuple[np.ndarray, np.ndarray] | None = None,
+                members: np.ndarray | None = None) -> np.ndarray | None:
     """The per-pixel change of least-squares coefficients that makes the ``centred`` columns' coefficients
     sum to zero over the pixels (the constrained least-squares solution): ``− A⁺[:, C]·G⁻¹·Σ_p β_C`` with
     ``G = Σ_p A⁺[C, C]``.  ``inv`` (…, k, k) the per-pixel pseudo-inverses, ``coef`` (…, k) the coefficients.
@@ -69,22 +70,31 @@ def common_mode(inv: np.ndarray, coef: np.ndarray, centred: np.ndarray,
 
     ``gram``: :func:`common_mode_gram` of ``inv`` and ``centred``, when the caller applies one ``inv`` to many
     coefficients (the joint solve's preconditioner, once per iteration: building it was a tenth of that solve).
+    ``members``: the pixels ``(…)`` over which the sums run (default all); the others' coefficients are free and
+    keep their unconstrained values (the fit's never-scored border, whose mean is not the pattern's:
+    :func:`~forensics.check.pixelfit.recentre`).
     """
     cols = np.flatnonzero(centred)
     if cols.size == 0:
         return None
-    inv_c, G = common_mode_gram(inv, centred) if gram is None else gram
+    inv_c, G = common_mode_gram(inv, centred, members) if gram is None else gram
+    if members is not None:
+        coef = coef[members]
     total = coef.reshape(-1, coef.shape[-1])[:, cols].sum(axis=0)
     lam = np.linalg.lstsq(G, total, rcond=None)[0]
     return -np.einsum("...ic,c->...i", inv_c, lam)
 
 
-def common_mode_gram(inv: np.ndarray, centred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def common_mode_gram(inv: np.ndarray, centred: np.ndarray,
+                     members: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What :func:`common_mode` needs of the pseudo-inverses ``inv`` alone: their ``centred`` columns
-    ``A⁺[:, C]`` (…, k, c) and ``G = Σ_p A⁺[C, C]`` (c, c)."""
+    ``A⁺[:, C]`` (…, k, c), zero outside ``members`` where given, and ``G = Σ_p A⁺[C, C]`` (c, c) over them."""
     cols = np.flatnonzero(centred)
-    flat_inv = inv.reshape(-1, *inv.shape[-2:])
-    return inv[..., :, cols], flat_inv[:, cols][:, :, cols].sum(axis=0)
+    inv_c = inv[..., :, cols]
+    if members is None:
+        flat_inv = inv.reshape(-1, *inv.shape[-2:])
+        return inv_c, flat_inv[:, cols][:, :, cols].sum(axis=0)
+    return inv_c * members[..., None, None], inv[members][:, cols][:, :, cols].sum(axis=0)
 
 
 class PixelProjector:

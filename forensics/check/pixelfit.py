@@ -166,7 +166,8 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         if recentre(local, centred, scored):
             mu = consistent(dev)
         if coupling is not None:
-            return _coupled_refit(consistent, dev, local, X_local, *coupling, wp, y, mu, centred)
+            return _coupled_refit(consistent, dev, local, X_local, *coupling, wp, y, mu, centred,
+                                  scored if has_unscored else None)
         coef, _ = solve_local(wp, X_local, y - mu, centred)
         for (_, p), c in zip(local, coef):
             m = p.blocks >= 0
@@ -259,13 +260,23 @@ def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, r
         return out if refill is None else out - predictor.refill(dev, pixels)
 
     base = predictor.deviation(dev, pixels) - (0.0 if refill is None else refill)
+    # A never-scored pixel (the dark frames' border) has no light frame of its own in the fit, so in the joint
+    # solve its value would be set by its neighbours' light frames alone — a free offset that absorbs their noise,
+    # pinned by nothing where its own dark frames are censored.  On 8-bit frames at a black level of 0 DN such
+    # pixels took DSNU values of −21 DN (σ_o 0.19 DN), crawled back 0.4 DN a cycle, and the fit never settled
+    # (sweep_check 8bit dsnu).  Their values are solved from their own readings; what they put into the
+    # neighbours' scene estimates follows in the next consistent prediction (the lagged scheme, for them only).
+    # They are also outside the random effects' zero sum (``members`` of the coupled step), as outside the mean
+    # that `recentre` takes: tied to it, whatever they moved was taken from the scored pixels, recentred, and
+    # the DSNU's mean drifted with them.
+    scored = np.any(pixels.weight > 0, axis=0)
     Z = []
     for _, p in local:
         used = used_blocks(p)
         eps = 1e-3 * (1.0 + float(np.max(np.abs(p.values[used])))) if used.size else 1.0
         p.values[used] += eps
         try:
-            Z.append((moved() - base) / eps * (p.blocks >= 0)[None])
+            Z.append((moved() - base) / eps * ((p.blocks >= 0) & scored)[None])
         finally:
             p.values[used] -= eps
     shift = dev.state[SCENE_SHIFT]
@@ -279,11 +290,11 @@ def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, r
 
 def _coupled_refit(consistent, dev: Device, local: list, X_local: list[np.ndarray], Z: list[np.ndarray],
                    F: np.ndarray, cache: dict, wp: np.ndarray, y: np.ndarray, mu: np.ndarray,
-                   centred: list[bool]) -> np.ndarray:
+                   centred: list[bool], members: np.ndarray | None = None) -> np.ndarray:
     """One joint Gauss–Newton step of the pixel-local patterns with their neighbours' scene term
     (:func:`~forensics.check.joint_solve.coupled_step`) from the consistent prediction ``mu``, halved (at most 4
     times) until χ² does not increase (else the patterns stay); returns the consistent prediction."""
-    step = coupled_step(X_local, Z, F, wp, y - mu, centred, cache=cache)
+    step = coupled_step(X_local, Z, F, wp, y - mu, centred, cache=cache, members=members)
     chi_old = float(np.sum(wp * (y - mu) ** 2))
     saved = [p.values.copy() for _, p in local]
     fraction = 1.0
@@ -344,6 +355,8 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
     dev = on_device(device, effects)
     r = y - mu
     raw = predict(dev, clip=False) if raw is None else raw
+    scored = np.any(w > 0, axis=0)
+    members = scored if wp is not None and not scored.all() else None  # the border is free (_coupled_refit)
     proj = PixelProjector([c * np.sqrt(w) for c in X_local], centred)
     J = []
     for i, n in glob:
@@ -356,7 +369,7 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         column = (predict(moved, clip=False) - raw) / d
         if coupling is not None:  # profiled against the joint pattern solve, neighbours' term included
             Z, F, cache = coupling
-            delta = coupled_step(X_local, Z, F, wp, column, centred, cache=cache).delta
+            delta = coupled_step(X_local, Z, F, wp, column, centred, cache=cache, members=members).delta
             J.append((column - coupled_forward(X_local, Z, F, delta)) * np.sqrt(w))
         else:
             J.append(proj.project(column * np.sqrt(w)))
