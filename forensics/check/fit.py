@@ -22,7 +22,7 @@ from forensics.check.identifiability import bounded_step, estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
 from forensics.check.prediction import SCENE_SHIFT
-from forensics.check.pixels import PixelData, VarianceBins, pattern_size
+from forensics.check.pixels import PixelData, VarianceBins, pattern_size, with_latent_spread
 from forensics.check.prediction import predicted_variance
 from forensics.check.local_solve import PixelProjector, shrink_local
 from forensics.check.measurements import Group
@@ -180,6 +180,8 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         effects[i] = bespoke_fit(effects[i], ev)
     # the noise laws see the fitted pixel effects (an analog gain amplifies the noise before it)
     device = on_device(device, effects)
+    pixels = dataclasses.replace(pixels, bins=with_latent_spread(
+        pixels.bins, ev.predictor.predict(device, pixels, "a", clip=False)))
     noise = fit_variance(pixels.bins, ev.rgroups, [effects[i] for i in n_idx], device)
     for i, e in zip(n_idx, noise.effects):
         effects[i] = e

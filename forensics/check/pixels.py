@@ -69,6 +69,8 @@ class VarianceBins:
     full_scale: float | None = None
     #: (R, H, W) the bin each pixel's variance went into (−1: none), to average per-pixel quantities per bin
     labels: np.ndarray | None = None
+    #: the spread holds latent means (the fitted model's, :func:`with_latent_spread`), not mean readouts
+    spread_latent: bool = False
 
     def bin_means(self, r: int, values: np.ndarray | float) -> np.ndarray:
         """Per bin of repeated condition ``r`` (in the order of ``group == r``), the mean of ``values`` — a
@@ -82,6 +84,31 @@ class VarianceBins:
         total = np.bincount(lab[m], np.broadcast_to(values, lab.shape)[m], minlength=len(self.group))
         count = np.bincount(lab[m], minlength=len(self.group))
         return total[idx] / np.maximum(count[idx], 1)
+
+
+def with_latent_spread(bins: VarianceBins, latent: np.ndarray) -> VarianceBins:
+    """``bins`` whose near-bound bins' spread is the fitted model's latent mean of their pixels (``latent``,
+    ``(R, H, W)``, unclipped) at the same quantiles, instead of the pixels' scene levels.
+
+    Why: near a bound the readout's variance depends steeply on a pixel's own latent level, and the bin holds only
+    pixels that never touched the bound — selected towards high levels.  The scene level (the neighbours' mean)
+    carries neither a pixel's own offset (its DSNU, its dark rate) nor that selection, only the neighbours'
+    noise; once the pixel fit has the pixels' own patterns, their latent means carry both.  (8-bit dark frames at
+    0 DN with a DSNU: the variance channel flagged shot noise, input noise and a nonlinearity the camera does not
+    have.)"""
+    if bins.spread is None or bins.labels is None:
+        return bins
+    near = np.flatnonzero(np.all(np.isfinite(bins.spread), axis=1))
+    if near.size == 0:
+        return bins
+    spread = bins.spread.copy()
+    qs = (np.arange(spread.shape[1]) + 0.5) / spread.shape[1]
+    for b in near:
+        r = bins.group[b]
+        values = latent[r][bins.labels[r] == b]
+        if values.size:
+            spread[b] = np.quantile(values, qs)
+    return dataclasses.replace(bins, spread=spread, spread_latent=True)
 
 
 @dataclass(frozen=True)

@@ -366,7 +366,8 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
         mean, _ = readout_moments(x, np.sqrt(noise_variance(noise_effects, x, ctx, flat_elec[at])), lo, hi)
         return mean - flat_m[at]
 
-    mu = bracketed_root(excess, (m - 10.0 * s - 2.0).ravel(), (m + 10.0 * s + 2.0).ravel(), iterations).reshape(m.shape)
+    mu = m if bins.spread_latent else \
+        bracketed_root(excess, (m - 10.0 * s - 2.0).ravel(), (m + 10.0 * s + 2.0).ravel(), iterations).reshape(m.shape)
     _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx, elec)), lo, hi, truncate=True)
     return idx[near], var.mean(axis=1)
 

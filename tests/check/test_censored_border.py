@@ -1,5 +1,6 @@
-"""The dark frames' never-scored border under censoring: the pixel fit settles (sweep_check's 8bit dsnu), and the
-random effects' zero sum runs over the scored pixels only."""
+"""Dark frames censored at 0 DN: the never-scored border no longer keeps the pixel fit moving (sweep_check's 8bit
+dsnu), the random effects' zero sum runs over the scored pixels only, and the variance near the bound is predicted
+at the pixels' fitted latent levels."""
 import dataclasses
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 
 from forensics.check.local_solve import common_mode
 from forensics.check.pipeline import base_model, prepare, resolve_effects, run_check
+from forensics.check.pixels import VarianceBins, with_latent_spread
 from forensics.fixtures.hidden import convention, make_hidden
 
 
@@ -29,6 +31,23 @@ def test_common_mode_over_members_leaves_the_others_free():
     assert abs(whole[..., 0].sum()) < 1e-12 * np.abs(coef).sum()
 
 
+def test_latent_spread_replaces_only_the_near_bound_bins():
+    rng = np.random.default_rng(1)
+    latent = rng.normal(0.3, 0.2, (2, 8, 8))
+    labels = np.full((2, 8, 8), -1)
+    labels[0, 1:7, 1:7] = 0                      # bin 0: condition 0, near a bound
+    labels[1, :, :4], labels[1, :, 4:] = 1, 2     # bins 1, 2: condition 1, binned by level
+    spread = np.full((3, 4), np.nan)
+    spread[0] = [0.1, 0.2, 0.3, 0.4]
+    bins = VarianceBins(np.array([0, 1, 1]), np.zeros(3), np.ones(3), np.ones(3), spread, 255.0, labels)
+    out = with_latent_spread(bins, latent)
+    assert out.spread_latent and not bins.spread_latent
+    assert np.allclose(out.spread[0], np.quantile(latent[0, 1:7, 1:7], (np.arange(4) + 0.5) / 4))
+    assert np.all(np.isnan(out.spread[1:]))
+    assert with_latent_spread(VarianceBins(np.array([1]), np.zeros(1), np.ones(1), np.ones(1), spread[1:2], 255.0,
+                                           labels), latent).spread_latent is False   # nothing near a bound
+
+
 @pytest.mark.slow
 def test_eight_bit_dsnu_at_black_level_zero_settles(tmp_path):
     # 8-bit frames at a black level of 0 DN: half the dark readings are censored at 0.  The border's DSNU values
@@ -40,6 +59,9 @@ def test_eight_bit_dsnu_at_black_level_zero_settles(tmp_path):
     res = run_check(ev, [*base_model(ev.black_level), *resolve_effects(["dsnu"])])
     assert not [p.label for p in res.params if not p.converged]
     assert res.error["pixel"] is not None and res.error["pixel"] <= 1.1
+    # the model is the camera's: nothing is flagged.  Before the latent spread the variance channel read the
+    # DSNU's spread near 0 DN as input noise (gof.variance 0.053, flagged; 128 × 128: shot noise and input noise)
+    assert not res.flagged
     # the dark level (black level + the DSNU's mean; only their sum is determined without an ISO gain) is
     # 0 DN in truth.  Its precision: 0.7 DN of noise over 1,600 pixels × 20 dark readings, about half of them
     # censored, ≈ 0.01 DN; 0.1 DN is 10 of those and a seventh of the read noise
