@@ -144,20 +144,22 @@ class PixelProjector:
 
 
 def solve_local(weight: np.ndarray, X: list[np.ndarray], r: np.ndarray,
-                centred: list[bool] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                centred: list[bool] | None = None, members: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel weighted least squares of ``r`` on the columns ``X``: (coefficients (k,H,W), their variances).
 
     Where columns are collinear at a pixel the coefficients are the minimum-norm solution and their variances
     NaN (not determined there), as for a column without information (:func:`scaled_pinv`).  The coefficients
     of ``centred`` columns sum to zero over the pixels (:func:`common_mode`); the variances are the
-    unconstrained ones (one constraint over many pixels changes them by ~1/n)."""
+    unconstrained ones (one constraint over many pixels changes them by ~1/n); ``members``: the pixels the sum
+    runs over (:func:`common_mode`)."""
     w = weight
     k = len(X)
     A = normal_matrix(X, w)
     b = np.stack([np.einsum("r...,r...->...", X[i] * w, r) for i in range(k)], axis=-1)
     inv, undetermined = scaled_pinv(A)
     coef = np.einsum("...ij,...j->...i", inv, b)
-    shift = common_mode(inv, coef, np.zeros(k, bool) if centred is None else np.asarray(centred, bool))
+    shift = common_mode(inv, coef, np.zeros(k, bool) if centred is None else np.asarray(centred, bool),
+                        members=members)
     if shift is not None:
         coef += shift
     var = np.einsum("...ii->...i", inv).copy()

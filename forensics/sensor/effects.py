@@ -407,12 +407,20 @@ class DarkCurrent(Effect):
         cat = device.catalogue
         if self._defect_key not in cat.extra:
             cat.extra[self._defect_key] = np.zeros(len(cat))
+        # A hot pixel has its non-uniformity value too: before its onset it is a normal pixel, and afterwards its
+        # record adds its own rate.  Only where it is hot from the first frame on are the two the same column, and
+        # the fit would split its rate between them: there the rate is the record's alone.  (The split, carried
+        # into the non-uniformity's mean, pulled the normal pixels' rates up by 11 % on a low-rate CCD series;
+        # keeping every hot pixel out lost the non-uniformity of those that turn hot later — their readings before
+        # the onset misfit, 14-bit sweep: partial class error 6.7.)  The fit also keeps the defect pixels out of
+        # the values' zero mean (pixelfit: ``members``).
         hot = record_blocks(cat, device.model.shape, PARTIAL)
-        # a hot pixel's rate is its own record's, not the non-uniformity's: with both on it the fit split its rate
-        # between them, and the non-uniformity's zero mean carried the hot pixels' shares into the mean rate, which
-        # the shrunken normal pixels followed (+11 % at 0.085 ADU/s and 6.5 ADU of read noise; RESULTS_check)
-        return [Pattern("r", device.state[self.key].reshape(-1), np.where(hot >= 0, -1, np.arange(h * w).reshape(h, w)),
-                        hyper="sigma_rate"),
+        first = min(device.times) if device.times else -np.inf
+        onset = np.full(hot.shape, np.inf)
+        onset[hot >= 0] = cat.onset[hot[hot >= 0]]
+        from_start = onset <= first
+        return [Pattern("r", device.state[self.key].reshape(-1),
+                        np.where(from_start, -1, np.arange(h * w).reshape(h, w)), hyper="sigma_rate"),
                 Pattern("rate", cat.extra[self._defect_key], record_blocks(cat, device.model.shape, PARTIAL),
                         hyper="rate_max", summary="max")]
 

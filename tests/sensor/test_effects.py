@@ -79,6 +79,16 @@ def test_patterns_are_views_into_the_device():
     idx = hot.blocks[hot.blocks >= 0]
     assert len(idx) == np.sum(dev.catalogue.kind == PARTIAL)  # hot pixels add their own rate
     assert hot.pixel_local
+    # the non-uniformity stays on a pixel that turns hot later (its readings before the onset are a normal
+    # pixel's); only where the record is there from the first time on do the two coincide, and the record takes it
+    # (frames from year 5 on: the defects that arrived before are there from the first frame)
+    later = model.realize(np.random.default_rng(1), [5.0, 10.0])
+    per_pixel, hot = model.effect("dark_current").patterns(later)
+    onset = np.full(SHAPE, np.inf)
+    onset[hot.blocks >= 0] = later.catalogue.onset[hot.blocks[hot.blocks >= 0]]
+    assert np.any(onset <= 5.0) and np.any((onset > 5.0) & np.isfinite(onset))
+    assert np.all(per_pixel.blocks[onset <= 5.0] == -1)
+    assert np.all(per_pixel.blocks[onset > 5.0] >= 0)
 
 
 def test_expected_arrivals_closed_form_matches_simulation():
