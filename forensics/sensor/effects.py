@@ -412,8 +412,7 @@ class DarkCurrent(Effect):
         # the fit would split its rate between them: there the rate is the record's alone.  (The split, carried
         # into the non-uniformity's mean, pulled the normal pixels' rates up by 11 % on a low-rate CCD series;
         # keeping every hot pixel out lost the non-uniformity of those that turn hot later — their readings before
-        # the onset misfit, 14-bit sweep: partial class error 6.7.)  The fit also keeps the defect pixels out of
-        # the values' zero mean (pixelfit: ``members``).
+        # the onset misfit, 14-bit sweep: partial class error 6.7.)
         hot = record_blocks(cat, device.model.shape, PARTIAL)
         first = min(device.times) if device.times else -np.inf
         onset = np.full(hot.shape, np.inf)
