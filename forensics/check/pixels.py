@@ -445,6 +445,9 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
 WIDE_SCENE = 31
 #: Side of the tiles the interval of a pattern's size resamples (far larger than the noise's correlation length).
 SIZE_TILE = 16
+#: a condition in which more than this share of the interior's means touched 0 or full scale is left out of the
+#: split-half size (:func:`pattern_size`)
+SIZE_CENSORED_SHARE = 0.01
 #: Tile-bootstrap replicates for that interval.
 N_BOOT = 400
 
@@ -457,6 +460,17 @@ def wide_scene(images: np.ndarray, size: int = WIDE_SCENE) -> np.ndarray:
     e = size // 2
     padded = np.pad(images, ((0, 0), (e, e), (e, e)), mode="symmetric")  # ndimage's "reflect"
     return signal.fftconvolve(padded, kernel[None], mode="valid", axes=(1, 2))
+
+
+def uncensored_conditions(meas: Measurements, n: int) -> np.ndarray:
+    """Of the pixel channel's first ``n`` conditions (:attr:`~Measurements.fitted`), those in which at most
+    :data:`SIZE_CENSORED_SHARE` of the interior's means touched 0 or full scale (the single frames, which have no
+    halves, never)."""
+    out = np.zeros(n, bool)
+    for r, g in enumerate(meas.repeated[:n]):
+        touched = (meas.lo[g][meas.interior] <= 0) | (meas.hi[g][meas.interior] >= meas.clip_level)
+        out[r] = float(np.mean(touched)) <= SIZE_CENSORED_SHARE
+    return out
 
 
 def wide_residuals(meas: Measurements, px: PixelData) -> tuple[np.ndarray, np.ndarray]:
@@ -519,8 +533,8 @@ def pattern_size(meas: Measurements, px: PixelData, x: np.ndarray, ok: np.ndarra
     channel's weights), over the pixels at least half the wide window from the frame's edge.  The standard
     error is from a bootstrap over ``SIZE_TILE`` tiles (spatially correlated noise stays within a tile).  Known
     defects are filled in before the wide estimate (a defect would
-    otherwise leak into hundreds of neighbours); only the pixels in ``ok`` count.  None when ``x`` has no weight
-    there.
+    otherwise leak into hundreds of neighbours); only the pixels in ``ok`` count, and only the conditions that are
+    not censored (:func:`uncensored_conditions`).  None when ``x`` has no weight there.
 
     ``others``: the effects per unit ``(R, H, W)`` of the other pixel-local patterns of the model.  The wide
     residual holds every fixed pattern, and one projected alone onto ``x`` carries the others' share along it (on
@@ -530,6 +544,11 @@ def pattern_size(meas: Measurements, px: PixelData, x: np.ndarray, ok: np.ndarra
     coefficients, weighted by a² as before: with no others the same numbers.
     """
     res_a, res_b = wide_residuals(meas, px)
+    # a condition whose means are censored at a bound (8-bit dark frames at a black level of 0 DN) shows only the
+    # pixels that never touched it, and those lie above the wide estimate of all of them in both halves at once:
+    # their cross-product holds that common shift, not the pattern (8-bit DSNU, σ_o 0.19 DN: 0.85 DN from the dark
+    # frames, 0.195 from the flats, 0.37 from both)
+    ok = ok & uncensored_conditions(meas, ok.shape[0])[:, None, None]
     ua, ub, a = _profiled_projections(x, others, px.weight, ok, res_a, res_b)
     # near the frame's edge the wide window reflects the scene, which is then no longer quadratic in it
     inner = np.zeros(meas.shape, bool)
