@@ -76,8 +76,7 @@ class Evidence(EffectQuestions):
         # frames (fitted only: :mod:`forensics.check.singles`)
         self.rep = meas.fitted
         self.rgroups = [meas.groups[g] for g in self.rep]
-        fs = meas.clip_level
-        self.censored = np.stack([(meas.lo[g] <= 0) | (meas.hi[g] >= fs) for g in self.rep])
+        self.censored = np.stack([meas.censored(g) for g in self.rep])
         n_rep = len(meas.repeated)
         #: the single frames' noise law, cosmic-ray hits and floor (None without single dark frames)
         self.singles = single_frames(meas, ~self.censored)

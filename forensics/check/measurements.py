@@ -157,6 +157,11 @@ class Measurements:
         scale)."""
         return self.full_scale if self.saturation is None else self.saturation
 
+    def censored(self, g: int) -> np.ndarray:
+        """(H, W): the pixels whose readout touched 0 or :attr:`clip_level` in some frame of condition ``g`` (their
+        mean is not the pixel's mean)."""
+        return (self.lo[g] <= 0) | (self.hi[g] >= self.clip_level)
+
     def drift(self, r: int) -> LevelDrift:
         """Frame-to-frame level changes of repeated condition ``r`` (index into :attr:`repeated`)."""
         if self.traits is None or r >= len(self.traits.blocks):

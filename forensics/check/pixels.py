@@ -468,8 +468,7 @@ def uncensored_conditions(meas: Measurements, n: int) -> np.ndarray:
     halves, never)."""
     out = np.zeros(n, bool)
     for r, g in enumerate(meas.repeated[:n]):
-        touched = (meas.lo[g][meas.interior] <= 0) | (meas.hi[g][meas.interior] >= meas.clip_level)
-        out[r] = float(np.mean(touched)) <= SIZE_CENSORED_SHARE
+        out[r] = float(np.mean(meas.censored(g)[meas.interior])) <= SIZE_CENSORED_SHARE
     return out
 
 

@@ -1,7 +1,8 @@
-"""Re-detection against the fitted model leaves censored means out, as the fit does (sweep_check's camera dsnu).
+"""Re-detection against the fitted model compares a pixel's mean over every frame with the mean of the clipped
+readout, not with the latent mean (sweep_check's camera dsnu).
 
 In the camera convention (black level 48 DN, a DSNU of σ_o = 48 DN) a sixth of the pixels have a dark level below
-0 DN and read 0 DN in every dark frame.  Re-detection used to compare those censored means with the model's latent
+0 DN and read 0 DN in every dark frame.  Re-detection used to compare those clipped means with the model's latent
 prediction (below 0 DN) and took each such pixel as partially stuck from the first epoch, by the censored amount
 (320 × 240: 186 records); a real defect arriving later at such a site was merged into that record, one amplitude
 for every epoch, and the fit then missed the early flats by 1,100 DN (partial class error 1.20, prnu flagged).
