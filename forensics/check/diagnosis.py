@@ -4,7 +4,8 @@ For each candidate not in the model, its signature (:mod:`forensics.check.signat
 the fitted model's residuals in every channel (:mod:`forensics.check.scoretests`).  Each candidate gets a
 predicted ΔBIC ≈ LM − q·ln n (q: its parameter count, n: the main channel's sample size) and a p-value;
 candidates are ranked by predicted ΔBIC (p-values underflow) and flagged only when ΔBIC > ``FLAG_DBIC``
-and the Holm-adjusted p < ``FLAG_P``.
+(also with each fixed pattern counted only as far as both halves of the frames show it) and the Holm-adjusted
+p < ``FLAG_P`` (:func:`flag_rule`).
 """
 from __future__ import annotations
 
@@ -72,9 +73,13 @@ def _candidate(effect: Effect, name: str, tests: list[ChannelTest], n_obs: int, 
     lm = float(sum(t.lm for t in tests))
     df = int(sum(t.df for t in tests))
     q = effect.n_params()
+    confirmed = None
     if tests and df > 0:
         main = max(tests, key=lambda t: t.lm)
         dbic = lm - q * math.log(max(main.n, 2))
+        if any(t.confirmed is not None for t in tests):
+            confirmed = sum(min(t.lm, t.confirmed) if t.confirmed is not None else t.lm for t in tests) \
+                - q * math.log(max(main.n, 2))
         p_raw = float(stats.chi2.sf(lm, df))
         if len(tests) == 1 and tests[0].boundary:
             p_raw *= 0.5
@@ -84,7 +89,25 @@ def _candidate(effect: Effect, name: str, tests: list[ChannelTest], n_obs: int, 
     evidence = "; ".join(t.detail for t in sorted(tests, key=lambda t: -t.lm)) or "no signature in these data"
     if where:
         evidence = f"{where}; {evidence}"
-    return Candidate(name, float(dbic), p_raw, False, lm, df, p_raw, q, tests, evidence, absorbed)
+    return Candidate(name, float(dbic), p_raw, False, lm, df, p_raw, q, tests, evidence, absorbed,
+                     None if confirmed is None else float(confirmed))
+
+
+def flag_rule(delta_bic: float, delta_bic_confirmed: float | None, p_adjusted: float) -> bool:
+    """The flagging rule: predicted ΔBIC above :data:`FLAG_DBIC` — also when every fixed pattern counts only as far
+    as both halves of the frames show it — and the Holm-adjusted p below :data:`FLAG_P`.
+
+    The second condition is there because the first half's random-effect ratio also grows with anything that
+    inflates that half's residual variance unevenly (noise the floor misses, a misfit of the other parameters);
+    a pattern the model lacks is in both halves, and the split-half z² is that test's own χ²₁.
+
+    Examples
+    --------
+    >>> flag_rule(30.0, None, 1e-6), flag_rule(30.0, -2.0, 1e-6), flag_rule(30.0, 12.0, 0.5)
+    (True, False, False)
+    """
+    confirmed = delta_bic_confirmed is None or delta_bic_confirmed > FLAG_DBIC
+    return bool(delta_bic > FLAG_DBIC and confirmed and p_adjusted < FLAG_P)
 
 
 def holm(results: list[Candidate]) -> None:
@@ -93,7 +116,7 @@ def holm(results: list[Candidate]) -> None:
         return
     for c, adj in zip(results, holm_adjusted([c.p_raw for c in results])):
         c.p = float(adj)
-        c.flagged = c.delta_bic > FLAG_DBIC and c.p < FLAG_P
+        c.flagged = flag_rule(c.delta_bic, c.delta_bic_confirmed, c.p)
 
 
 def _where(usable: np.ndarray, px: PixelData, sigs: list[Signature]) -> str:

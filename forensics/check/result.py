@@ -95,6 +95,9 @@ class ChannelTest:
     detail: str
     boundary: bool = False  #: variance component tested at zero: the null distribution is ½χ²₀ + ½χ²₁
     absorbed: bool = False  #: the model's own parameters absorb (almost) all of the signature
+    #: a fixed pattern's statistic as far as both halves of the frames show it (the split-half z², 0 when z ≤ 0);
+    #: ``None`` for a test that is not of a fixed pattern
+    confirmed: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -115,11 +118,14 @@ class Candidate:
     tests: list[ChannelTest]
     evidence: str
     absorbed: bool = False
+    #: the predicted ΔBIC with each fixed pattern's statistic taken only as far as both halves show it
+    #: (:attr:`ChannelTest.confirmed`); ``None`` when no fixed pattern is tested
+    delta_bic_confirmed: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"effect": self.effect, "delta_bic": self.delta_bic, "p": self.p, "flagged": self.flagged,
-                "lm": self.lm, "df": self.df, "p_raw": self.p_raw, "q": self.q, "evidence": self.evidence,
-                "tests": [t.to_dict() for t in self.tests]}
+        return {"effect": self.effect, "delta_bic": self.delta_bic, "delta_bic_confirmed": self.delta_bic_confirmed,
+                "p": self.p, "flagged": self.flagged, "lm": self.lm, "df": self.df, "p_raw": self.p_raw, "q": self.q,
+                "evidence": self.evidence, "tests": [t.to_dict() for t in self.tests]}
 
 
 @dataclass

@@ -173,28 +173,67 @@ def second_half_z(ev: Evidence, fitted: FittedModel, keep: np.ndarray) -> np.nda
     return np.where(keep, fitted.projector.project(np.where(keep, r, 0.0) * np.sqrt(px.weight)), 0.0)
 
 
+@dataclass(frozen=True)
+class PatternStatistic:
+    """A fixed pattern's test statistic over blocks (:func:`pattern_statistic`).
+
+    ``lm`` is the first half's random-effect likelihood ratio made free of the floor and of the noise's spatial
+    correlation: residuals rescaled by the noise the halves' difference shows, the ratio divided by its measured
+    inflation (a quasi-likelihood ratio), 0 when the halves share no pattern (split-half z ≤ 0).  ``confirmed``
+    is the split-half z² (0 when z ≤ 0): the evidence that *both* halves show the pattern, which is what a fixed
+    pattern missing from the model leaves.  The ratio alone also grows with anything that raises one half's
+    residual variance unevenly over the blocks (noise the floor misses there, a misfit of other parameters), so
+    a candidate is flagged only when both clear the bar (:func:`~forensics.check.diagnosis.flag_rule`); the
+    ratio, the stronger statistic when the pattern is real, ranks the candidates.
+    """
+
+    lm: float
+    confirmed: float
+    half: SplitHalf
+    size: float  #: the random effect's typical size per block, in the signature's units
+    scale: float  #: the first half's noise relative to the floor
+    inflation: float  #: the ratio's inflation by spatially correlated noise (≥ 1)
+    blocks: int  #: blocks that carry the signature
+
+
+def pattern_statistic(ua: np.ndarray, ub: np.ndarray, ab: np.ndarray, tile: np.ndarray) -> PatternStatistic:
+    """A fixed pattern's statistics from each half's signature-weighted residual sums per block (``ua``, ``ub``),
+    the signature's weight per block (``ab``) and each block's tile.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> n = 64 * 64
+    >>> tile = tile_index((64, 64)).ravel()
+    >>> ones = np.ones(n)
+    >>> pattern = 0.5 * rng.standard_normal(n)
+    >>> shared = pattern_statistic(pattern + rng.standard_normal(n), pattern + rng.standard_normal(n), ones, tile)
+    >>> bool(shared.lm > 100 and shared.confirmed > 100)
+    True
+    """
+    used = ab > 1e-12 * max(float(ab.max()) if ab.size else 0.0, 1e-300)
+    half = split_half_test(ua[used], ub[used], ab[used], tile[used])
+    scale = half.noise if math.isfinite(half.noise) and half.noise > 0 else 1.0
+    zs = ua[used] / np.sqrt(ab[used] * scale)
+    lr, t_lr = random_effect_lr(zs, ab[used])
+    inflation = max(half.inflation, 1.0)
+    shared = half.z > 0
+    return PatternStatistic(lr / inflation if shared else 0.0, half.z**2 if shared else 0.0, half,
+                            math.sqrt(t_lr * scale), scale, inflation, int(used.sum()))
+
+
 def _pattern_test(ev: Evidence, fitted: FittedModel, s: Signature, xp: np.ndarray, z: np.ndarray, zb: np.ndarray,
                   tiles: np.ndarray, keep: np.ndarray, raw_norm: float, n_obs: int) -> ChannelTest:
-    """A fixed pattern's test: the random effect's likelihood ratio on the first half, with the noise scale and
-    the ratio's inflation by spatially correlated noise both measured by the split halves
-    (:func:`split_half_test`), and zero unless the halves share the pattern (split-half z > 0); for a
-    pixel-local pattern, its size as the frames show it with an interval (:func:`pattern_size`)."""
+    """A fixed pattern's test (:func:`pattern_statistic`) from the two halves' residuals; for a pixel-local
+    pattern, its size as the frames show it with an interval (:func:`pattern_size`)."""
     blk = np.broadcast_to(s.blocks[None], xp.shape)
     m = (blk >= 0) & keep
     nblk = int(s.blocks.max()) + 1
     ua = np.bincount(blk[m], (xp * z)[m], minlength=nblk)
     ub = np.bincount(blk[m], (xp * zb)[m], minlength=nblk)
     ab = np.bincount(blk[m], (xp * xp)[m], minlength=nblk)
-    used = ab > 1e-12 * max(ab.max(), 1e-300)
-    half = split_half_test(ua[used], ub[used], ab[used], block_tiles(s.blocks, tiles, nblk)[used])
-    # the random effect's likelihood ratio, made free of the floor and of the noise's spatial correlation by the
-    # split halves: residuals rescaled by the noise the halves' difference shows, the ratio divided by the
-    # statistic's measured inflation (a quasi-likelihood ratio); nothing when the halves share no pattern
-    scale = half.noise if math.isfinite(half.noise) and half.noise > 0 else 1.0
-    zs = np.where(used, ua / np.sqrt(np.where(used, ab * scale, 1)), 0.0)
-    lr, t_lr = random_effect_lr(zs[used], ab[used])
-    inflation = max(half.inflation, 1.0)
-    lm = lr / inflation if half.z > 0 else 0.0
+    stat = pattern_statistic(ua, ub, ab, block_tiles(s.blocks, tiles, nblk))
+    half = stat.half
     frac = float(np.sum(ab)) / raw_norm
     size = ""
     if s.pixel_local:
@@ -204,11 +243,12 @@ def _pattern_test(ev: Evidence, fitted: FittedModel, s: Signature, xp: np.ndarra
             kept = half.t / est.sigma**2 if est.sigma > 0 else math.nan
             size = (f"; pattern σ {est.sigma:.3g} ± {est.se:.2g} as the frames show it "
                     f"({min(kept, 9.99):.0%} of its variance left by the scene estimate)")
-    detail = (f"{s.name}: random-effect LR {lm:.4g} over {int(used.sum())} blocks (typical size "
-              f"{math.sqrt(t_lr * scale):.3g}; noise {scale:.3g}× the floor, LR ÷ {inflation:.3g} for its spatial "
+    detail = (f"{s.name}: random-effect LR {stat.lm:.4g} over {stat.blocks} blocks (typical size "
+              f"{stat.size:.3g}; noise {stat.scale:.3g}× the floor, LR ÷ {stat.inflation:.3g} for its spatial "
               f"correlation); split-half z {half.z:+.3g} over {half.tiles} tiles of {TILE}×{TILE}{size}; "
               f"{frac:.0%} of the signature survives the model's own parameters")
-    return ChannelTest("pixel", lm, 1, n_obs, detail, boundary=True, absorbed=frac < 0.05)
+    return ChannelTest("pixel", stat.lm, 1, n_obs, detail, boundary=True, absorbed=frac < 0.05,
+                       confirmed=stat.confirmed)
 
 
 def score_variance(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> list[ChannelTest]:

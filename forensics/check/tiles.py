@@ -41,7 +41,7 @@ from scipy import stats
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.progress import Progress, no_progress
 from forensics._shared.rng import RngLike
-from forensics.check.diagnosis import FLAG_DBIC, FLAG_P
+from forensics.check.diagnosis import flag_rule
 from forensics.check.measurements import Region
 from forensics.check.result import ParamEstimate, PatternEstimate
 from forensics.io.dataset import Dataset, open_dataset
@@ -108,6 +108,7 @@ class TileCandidate:
     df: int
     delta_bic: float
     flagged: bool
+    delta_bic_confirmed: float | None = None  #: as :attr:`~forensics.check.result.Candidate.delta_bic_confirmed`
 
 
 @dataclass(frozen=True)
@@ -138,7 +139,8 @@ class TileResult:
     def of(cls, tile: Tile, result: "CheckResult") -> "TileResult":
         """The parts of a tile's :class:`~forensics.check.result.CheckResult` the combination uses."""
         unsettled = [p.label for p in result.params if not p.converged]
-        cands = [TileCandidate(c.effect, float(c.lm), int(c.df), float(c.delta_bic), bool(c.flagged))
+        cands = [TileCandidate(c.effect, float(c.lm), int(c.df), float(c.delta_bic), bool(c.flagged),
+                               c.delta_bic_confirmed)
                  for c in result.candidates if c.lm is not None and np.isfinite(c.lm) and c.df > 0]
         return cls(tile, list(result.effects), list(result.params), dict(result.error["classes"]),
                    dict(result.data["held_out_means"]), result.error["variance"], dict(result.gof), cands,
@@ -195,6 +197,7 @@ class CombinedCandidate:
     flagged: bool
     flagged_tiles: int
     tested_tiles: int
+    delta_bic_confirmed: float | None = None  #: summed over the tiles (a tile without a fixed pattern: its ΔBIC)
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -447,23 +450,29 @@ def combine_gof(tiles: Sequence[TileResult]) -> dict[str, float | None]:
 def combine_candidates(tiles: Sequence[TileResult]) -> list[CombinedCandidate]:
     """Every candidate's score statistics summed over the tiles that tested it (each χ² with its df under the
     model, the tiles independent), ΔBIC summed likewise, Holm-adjusted across candidates and flagged by the
-    rule of one check (ΔBIC > :data:`~forensics.check.diagnosis.FLAG_DBIC` and p < ``FLAG_P``); ranked by ΔBIC."""
+    rule of one check (:func:`~forensics.check.diagnosis.flag_rule`); ranked by ΔBIC."""
     sums: dict[str, list[float]] = {}
+    patterns: set[str] = set()
     for t in tiles:
         if t.excluded:
             continue
         for c in t.candidates:
-            s = sums.setdefault(c.effect, [0.0, 0, 0.0, 0, 0])
+            s = sums.setdefault(c.effect, [0.0, 0, 0.0, 0, 0, 0.0])
             s[0] += c.lm
             s[1] += c.df
             s[2] += c.delta_bic
             s[3] += int(c.flagged)
             s[4] += 1
+            s[5] += c.delta_bic if c.delta_bic_confirmed is None else c.delta_bic_confirmed
+            if c.delta_bic_confirmed is not None:
+                patterns.add(c.effect)
     names = list(sums)
     p_raw = [float(stats.chi2.sf(sums[n][0], sums[n][1])) for n in names]
     p_adj = holm_adjusted(p_raw) if names else np.array([])
+    confirmed = {n: float(sums[n][5]) if n in patterns else None for n in names}
     out = [CombinedCandidate(n, float(sums[n][0]), int(sums[n][1]), float(sums[n][2]), p_raw[i], float(p_adj[i]),
-                             bool(sums[n][2] > FLAG_DBIC and p_adj[i] < FLAG_P), int(sums[n][3]), int(sums[n][4]))
+                             flag_rule(float(sums[n][2]), confirmed[n], float(p_adj[i])), int(sums[n][3]),
+                             int(sums[n][4]), confirmed[n])
            for i, n in enumerate(names)]
     return sorted(out, key=lambda c: -c.delta_bic)
 
