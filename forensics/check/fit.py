@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -281,7 +281,7 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
             bounds.append((-25.0, 25.0) if _log_scale(arr[j], n) else (lo if np.isfinite(lo) else None,
                                                                        hi if np.isfinite(hi) else None))
         best = optimize.minimize(nll, x0, method="L-BFGS-B", bounds=bounds)
-        converged = bool(best.success) and bool(np.all(np.isfinite(best.x)))
+        converged = bool(np.all(np.isfinite(best.x))) and (bool(best.success) or stationary(nll, best.x, bounds))
         arr = unpack(arr, best.x)
     expected = counts.expected_counts(arr)
     jac = None
@@ -299,6 +299,37 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
         for n in e.self_fitted:
             params.append(ParamEstimate(e.key, n, float(getattr(e, n)), None, unit(e, n)))
     return ArrivalFit(arr, expected, [(arr[j].key, n) for j, n in free], jac, params)
+
+
+def stationary(fun: Callable[[np.ndarray], float], x: np.ndarray, bounds: Sequence[tuple[float | None, float | None]],
+               step: float = 1e-4, tol: float = 1e-6) -> bool:
+    """Whether ``x`` minimises the negative log-likelihood ``fun`` to within ``tol`` (in log-likelihood units):
+    along every coordinate the decrease a Newton step would still give, g²/(2h) from central differences, is below
+    ``tol`` — or the coordinate sits on a bound with the gradient pointing out of the box.
+
+    Why: L-BFGS-B started *at* its optimum (a refit whose counts did not change) cannot make its line search
+    decrease the objective and reports an abnormal termination, which is no failure to converge.
+
+    Examples
+    --------
+    >>> stationary(lambda t: float((t[0] - 1.0) ** 2), np.array([1.0]), [(None, None)])
+    True
+    >>> stationary(lambda t: float((t[0] - 1.0) ** 2), np.array([0.9]), [(None, None)])
+    False
+    """
+    f0 = fun(x)
+    for i in range(len(x)):
+        e = np.zeros_like(x, dtype=float)
+        e[i] = step
+        up, down = fun(x + e), fun(x - e)
+        g = (up - down) / (2 * step)
+        h = (up - 2 * f0 + down) / step**2
+        lo, hi = bounds[i]
+        if (lo is not None and x[i] - lo <= step and g > 0) or (hi is not None and hi - x[i] <= step and g < 0):
+            continue  # on a bound, pushed against it
+        if not (h > 0 and g * g / (2 * h) < tol):
+            return False
+    return True
 
 
 def pattern_summaries(device: Device, effects: list[Effect], p_idx: list[int], local: list,
