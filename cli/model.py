@@ -222,11 +222,12 @@ def format_tiles(tiled: Any) -> str:
               f"  pixel     {_g(e['pixel'])}   ({classes})", f"  variance  {_g(e['variance'])}",
               "", "Goodness of fit (p-values, the tiles' combined by Fisher's method)",
               "  " + "   ".join(f"{k} {_p(v)}" for k, v in tiled.gof.items()),
-              "", "Candidates (score statistics summed over the tiles; flagged: ΔBIC > 10 and Holm-adjusted p < 0.01)"]
+              "", "Candidates (score statistics summed over the tiles; flagged: ΔBIC > 10, for a fixed pattern also as "
+              "far as both halves of the repeats show it, and Holm-adjusted p < 0.01)"]
     for i, c in enumerate(tiled.candidates, 1):
         flag = "FLAGGED" if c.flagged else ""
         lines.append(f"  {i}. {c.effect:<20} ΔBIC {_g(c.delta_bic, '10.4g')}   p {_p(c.p):<9} "
-                     f"flagged alone in {c.flagged_tiles} of {c.tested_tiles} tiles   {flag}".rstrip())
+                     f"flagged alone in {c.flagged_tiles} of {c.tested_tiles} tiles{_halves(c)}   {flag}".rstrip())
     lines.append("")
     differ = [p.estimate.label for p in tiled.params if p.p_same is not None and p.p_same < 0.001]
     if differ:
@@ -283,6 +284,16 @@ def format_ladder(sel: Any) -> str:
         lines.append("Same model by hand: forensics model check " + str(sel.result.data["folder"]) + " "
                      + " ".join(f"--add {a}" for a in [*_added(sel.steps[0].result), *sel.added]))
     return "\n".join(lines)
+
+
+def _halves(c) -> str:
+    """A note where a candidate's ΔBIC counted only as far as both halves show its pattern is below the bar."""
+    from forensics.check.diagnosis import FLAG_DBIC
+
+    confirmed = getattr(c, "delta_bic_confirmed", None)
+    if confirmed is None or confirmed > FLAG_DBIC or c.delta_bic <= FLAG_DBIC:
+        return ""
+    return f"   (both halves: ΔBIC {_g(confirmed, '.4g')}, not flagged)"
 
 
 def _g(v: Any, spec: str = ".3g") -> str:
@@ -344,12 +355,13 @@ def format_check(result: Any) -> str:
     for c in result.checks:
         lines.append(f"  {c.statistic[:66]:<66} {_g(c.measured, '10.4g')} {_g(c.predicted, '10.4g')} "
                      f"{_g(c.z, '9.3g')}")
-    lines += ["", "Candidates, ranked by predicted ΔBIC (flagged: ΔBIC > 10 and Holm-adjusted p < 0.01)"]
+    lines += ["", "Candidates, ranked by predicted ΔBIC (flagged: ΔBIC > 10, for a fixed pattern also as far as both "
+              "halves of the repeats show it, and Holm-adjusted p < 0.01)"]
     if not result.candidates:
         lines.append("  (none tested)")
     for i, c in enumerate(result.candidates, 1):
         flag = "FLAGGED" if c.flagged else ""
-        lines.append(f"  {i}. {c.effect:<20} ΔBIC {_g(c.delta_bic, '10.4g')}   p {_p(c.p):<9} {flag}")
+        lines.append(f"  {i}. {c.effect:<20} ΔBIC {_g(c.delta_bic, '10.4g')}   p {_p(c.p):<9}{_halves(c)} {flag}".rstrip())
         lines.append(f"     {c.evidence}")
     flagged = result.flagged
     lines.append("")
