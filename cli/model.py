@@ -290,7 +290,7 @@ def _halves(c) -> str:
     """A note where a candidate's ΔBIC counted only as far as both halves show its pattern is below the bar."""
     from forensics.check.diagnosis import FLAG_DBIC
 
-    confirmed = getattr(c, "delta_bic_confirmed", None)
+    confirmed = c.delta_bic_confirmed
     if confirmed is None or confirmed > FLAG_DBIC or c.delta_bic <= FLAG_DBIC:
         return ""
     return f"   (both halves: ΔBIC {_g(confirmed, '.4g')}, not flagged)"

@@ -76,10 +76,10 @@ def _candidate(effect: Effect, name: str, tests: list[ChannelTest], n_obs: int, 
     confirmed = None
     if tests and df > 0:
         main = max(tests, key=lambda t: t.lm)
-        dbic = lm - q * math.log(max(main.n, 2))
+        penalty = q * math.log(max(main.n, 2))
+        dbic = lm - penalty
         if any(t.confirmed is not None for t in tests):
-            confirmed = sum(min(t.lm, t.confirmed) if t.confirmed is not None else t.lm for t in tests) \
-                - q * math.log(max(main.n, 2))
+            confirmed = sum(t.lm if t.confirmed is None else min(t.lm, t.confirmed) for t in tests) - penalty
         p_raw = float(stats.chi2.sf(lm, df))
         if len(tests) == 1 and tests[0].boundary:
             p_raw *= 0.5

@@ -19,19 +19,18 @@ from forensics.sensor.model import Stage
 
 def test_lbfgsb_restarted_at_a_poisson_optimum_can_report_failure():
     # the situation itself (scipy's L-BFGS-B): a Poisson likelihood of two log-rates minimised, then restarted from
-    # the point found, twice; the third run cannot decrease the objective and reports failure at the optimum
+    # the point found, twice; with scipy 1.17 the third run cannot decrease the objective and reports failure
+    # at the optimum.  Whatever a scipy version reports, every run must end where the fit counts as settled.
     counts = np.array([5000.0, 3.0])
 
     def nll(t: np.ndarray) -> float:
         return float(np.sum(np.exp(t) - counts * t))
 
     x = np.log(counts)
-    runs = []
     for _ in range(3):
         r = optimize.minimize(nll, x, method="L-BFGS-B", bounds=[(-25.0, 25.0)] * 2)
-        runs.append(bool(r.success))
         x = r.x
-    assert runs == [True, True, False]
+        assert r.success or stationary(nll, x, [(-25.0, 25.0)] * 2), r.message
     assert stationary(nll, x, [(-25.0, 25.0)] * 2)
 
 
