@@ -86,7 +86,8 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
     k = len(X)
     shape = X[0].shape[1:]
     coupled = [r for r in range(F.shape[0]) if np.any(F[r]) and any(np.any(z[r]) for z in Z)]
-    inv = _cached_preconditioner(X, Z, F, weight, coupled, kernel_t, cache)
+    held = _cached_operands(X, Z, F, weight, coupled, kernel_t, cache)
+    inv = held.inverse
     centred_mask = np.asarray(centred, bool)
     gram = common_mode_gram(inv, centred_mask, members) if centred_mask.any() else None
 
@@ -109,35 +110,12 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
     rz = float(np.sum(g * z))
     if not coupled or rz <= 0.0:  # the per-pixel solve is exact
         return CoupledStep(z, 0, True)
-
-    # the normal operator with each pattern's Z factored as c_r·z(p) (what differs between frames is the scene
-    # estimate's excluded outliers, a few pixels): one kernel and one transpose per pattern and iteration
-    # instead of one per frame; an approximate Hessian only slows the iterations, the fixed point stays exact
-    profiles, factors = [], []
-    for zj in Z:
-        norms = np.array([float(np.sum(zj[r] ** 2)) for r in coupled])
-        ref = zj[coupled[int(np.argmax(norms))]]
-        den = float(np.sum(ref * ref))
-        profiles.append(ref)
-        factors.append(np.array([float(np.sum(zj[r] * ref)) / den if den > 0 else 0.0 for r in coupled]))
-    Fc = F[coupled]
-
-    def normal_operator(d: np.ndarray) -> np.ndarray:  # AᵀWA·Δ
-        u = sum(x * d[j][None] for j, x in enumerate(X))
-        spread = [kernel(profiles[j] * d[j]) for j in range(k)]
-        u[coupled] += Fc * sum(c[:, None, None] * s[None] for c, s in zip(factors, spread))
-        u *= weight
-        out = np.stack([np.einsum("r...,r...->...", x, u) for x in X])
-        fu = Fc * u[coupled]
-        for j in range(k):
-            out[j] += profiles[j] * kernel_t(np.einsum("r,r...->...", factors[j], fu))
-        return out
-
+    blocks = held.blocks()
     rz0 = rz
     delta = np.zeros((k, *shape))
     p = z.copy()
     for it in range(1, max_iter + 1):
-        q = normal_operator(p)
+        q = blocks.apply(p, kernel, kernel_t)  # AᵀWA·p
         pq = float(np.sum(p * q))
         if pq <= 0.0:
             return CoupledStep(delta, it, False)
@@ -153,17 +131,89 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
     return CoupledStep(delta, max_iter, False)
 
 
-def _cached_preconditioner(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray,
-                           coupled: list[int], kernel_t: Callable[..., np.ndarray], cache: dict | None) -> np.ndarray:
-    """:func:`_preconditioner`, from ``cache`` when it was built there for the same ``X``, ``Z``, ``F`` (the same
-    objects) and the same values of ``weight`` (a digest of its bytes, O(n) against the build's O(k²·R·n)).
+@dataclass
+class OperatorBlocks:
+    """The normal operator AᵀWA of :func:`coupled_step` reduced to per-pixel blocks over the frames.
+
+    The operator is built with each pattern's Z factored as c_r·z(p) (``profiles`` z, ``factors`` c over the
+    coupled frames C: what differs between frames is the scene estimate's excluded outliers, a few pixels) —
+    one kernel and one transpose per pattern and iteration instead of one per frame; an approximate Hessian only
+    slows the iterations, the fixed point stays exact.  With S_j = K(z_j·Δ_j) it is
+
+        (AᵀWA·Δ)_i = Σ_j own_ij·Δ_j + Σ_j cross_ij·S_j + z_i·Kᵀ(Σ_j cross_ji·Δ_j + Σ_j spread_ij·S_j),
+
+    own_ij = Σ_r X_ri·w_r·X_rj, cross_ij = Σ_{r∈C} X_ri·w_r·F_r·c_rj, spread_ij = Σ_{r∈C} c_ri·c_rj·F_r²·w_r.
+    Why: applied frame by frame the operator cost O(k·R) image passes per iteration, and it was a quarter of
+    the check's time on the camera convention (R ≈ 100 conditions); these sums over the frames are made once per
+    weights and cost O(k²) passes per iteration.  The same numbers up to rounding."""
+
+    own: np.ndarray  #: (k, k, H, W)
+    cross: np.ndarray  #: (k, k, H, W)
+    spread: np.ndarray  #: (k, k, H, W)
+    profiles: list[np.ndarray]  #: per pattern, (H, W)
+
+    def apply(self, d: np.ndarray, kernel: Callable[[np.ndarray], np.ndarray] = kernel_estimate,
+              kernel_t: Callable[..., np.ndarray] = kernel_transpose) -> np.ndarray:
+        """AᵀWA·``d`` for pattern changes ``d`` (k, H, W)."""
+        spread = np.stack([kernel(z * dj) for z, dj in zip(self.profiles, d)])
+        out = np.einsum("ij...,j...->i...", self.own, d) + np.einsum("ij...,j...->i...", self.cross, spread)
+        into = np.einsum("ji...,j...->i...", self.cross, d) + np.einsum("ij...,j...->i...", self.spread, spread)
+        for j, z in enumerate(self.profiles):
+            out[j] += z * kernel_t(into[j])
+        return out
+
+
+def operator_blocks(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray,
+                    coupled: list[int], own: np.ndarray | None = None) -> OperatorBlocks:
+    """The :class:`OperatorBlocks` of the linearised model (``own``: its :func:`normal_matrix`, if made)."""
+    k = len(X)
+    own = normal_matrix(X, weight) if own is None else own
+    profiles, factors = [], []
+    for zj in Z:
+        norms = np.array([float(np.sum(zj[r] ** 2)) for r in coupled])
+        ref = zj[coupled[int(np.argmax(norms))]]
+        den = float(np.sum(ref * ref))
+        profiles.append(ref)
+        factors.append(np.array([float(np.sum(zj[r] * ref)) / den if den > 0 else 0.0 for r in coupled]))
+    c = np.stack(factors, axis=1)  # (|C|, k)
+    fw = F[coupled] * weight[coupled]
+    cross = np.stack([np.einsum("r...,rj->j...", X[i][coupled] * fw, c) for i in range(k)])
+    spread = np.einsum("ri,rj,r...->ij...", c, c, fw * F[coupled])
+    return OperatorBlocks(np.moveaxis(own, (-2, -1), (0, 1)), cross, spread, profiles)
+
+
+@dataclass
+class _Operands:
+    """What :func:`coupled_step` builds once per weights: the preconditioner, and the operator's blocks when
+    conjugate gradients need them."""
+
+    inverse: np.ndarray
+    build: Callable[[], OperatorBlocks]
+    _blocks: OperatorBlocks | None = None
+
+    def blocks(self) -> OperatorBlocks:
+        if self._blocks is None:
+            self._blocks = self.build()
+        return self._blocks
+
+
+def _cached_operands(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray,
+                     coupled: list[int], kernel_t: Callable[..., np.ndarray], cache: dict | None) -> _Operands:
+    """The preconditioner and operator blocks, from ``cache`` when they were built there for the same ``X``,
+    ``Z``, ``F`` (the same objects) and the same values of ``weight`` (a digest of its bytes, O(n) against the
+    build's O(k²·R·n)).
 
     Why: a fit cycle solves with one (X, Z, F) once per pattern refit and once per global parameter's column;
     building the per-pixel blocks anew each time was most of the coupled solve (30 % of the EMVA standard
     series' check on a 160 × 120 region).  The weights may change within a cycle (misfitting border pixels
     dropped), hence the digest."""
+    def build() -> _Operands:
+        own = normal_matrix(X, weight)
+        return _Operands(_preconditioner(X, Z, F, weight, coupled, kernel_t, own.copy()),
+                         lambda: operator_blocks(X, Z, F, weight, coupled, own))
+
     if cache is None:
-        return _preconditioner(X, Z, F, weight, coupled, kernel_t)
+        return build()
     key = hashlib.blake2b(np.ascontiguousarray(weight).view(np.uint8).data, digest_size=16).digest()
     held = cache.get("operands")
     if held is None or not (len(held[0]) == len(X) and all(a is b for a, b in zip(held[0], X))
@@ -171,17 +221,17 @@ def _cached_preconditioner(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarr
         cache.clear()
         cache["operands"] = (list(X), list(Z), F)
     if key not in cache:
-        cache[key] = _preconditioner(X, Z, F, weight, coupled, kernel_t)
+        cache[key] = build()
     return cache[key]
 
 
 def _preconditioner(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray,
-                    coupled: list[int], kernel_t: Callable[..., np.ndarray]) -> np.ndarray:
+                    coupled: list[int], kernel_t: Callable[..., np.ndarray], A: np.ndarray | None = None) -> np.ndarray:
     """Per pixel, the inverse of the normal matrix's own block — the pixel's own frames plus what its values do
     to its neighbours' estimates (Σ_q K_qp²·F²·w: a border pixel seen only in dark frames is otherwise read as
     far less determined than it is, and conjugate gradients took 140 iterations, not 40)."""
     k = len(X)
-    A = normal_matrix(X, weight)
+    A = normal_matrix(X, weight) if A is None else A  # (changed in place: pass a copy)
     own = ~dead_columns(A)  # a value without information of its own is not solved for (it stays)
     for r in coupled:
         spread = kernel_t(F[r] ** 2 * weight[r], 2)
