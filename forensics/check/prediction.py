@@ -41,7 +41,7 @@ from forensics.check.pixels import PixelData, VarianceBins
 from forensics.check.scene import kernel_estimate
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device, Effect, FrameContext, Stage
-from forensics.stats.censored import readout_moments, tabulated_truncated_mean
+from forensics.stats.censored import readout_moments, truncated_readout_mean
 
 
 #: Key of :meth:`Predictor.scene_shift`'s frozen result in a fitted device's state (absent: no shift).
@@ -305,31 +305,14 @@ def _near_bound_means(mu: np.ndarray, ctx: FrameContext, full_scale: float, reac
 
 
 def distinct_readout_means(mu: np.ndarray, sigma: np.ndarray, hi: int) -> np.ndarray:
-    """:func:`~forensics.stats.censored.readout_moments`' truncated mean: from a checked table where there are
-    many values (:func:`~forensics.stats.censored.tabulated_truncated_mean`, within 10⁻⁶ DN), else computed once
-    per distinct (μ, σ).
-
-    Why: the sum over levels costs O(σ) per value, and in dark frames every pixel near 0 DN needs one (a 12-bit
-    camera at K = 0.1 DN/e⁻: every dark pixel sits within 4 σ of 0, and the sum was most of the check's time);
-    without patterns of their own the pixels share their (μ, σ) and one sum serves them all; with per-pixel
-    patterns (DSNU, dark current) the values are all distinct, and the table costs a tenth to a half of the sums."""
+    """:func:`~forensics.stats.censored.readout_moments`' truncated mean, as cheaply as it holds
+    (:func:`~forensics.stats.censored.truncated_readout_mean`), one bound at a time: a table across both would
+    span the whole range."""
     out = np.empty(mu.shape)
-    for side in (mu < 0.5 * hi, mu >= 0.5 * hi):  # one table per bound (a table across both would span the range)
+    for side in (mu < 0.5 * hi, mu >= 0.5 * hi):
         if side.any():
-            out[side] = _side_means(mu[side], sigma[side], hi)
+            out[side] = truncated_readout_mean(mu[side], sigma[side], 0, hi)
     return out
-
-
-def _side_means(mu: np.ndarray, sigma: np.ndarray, hi: int) -> np.ndarray:
-    """:func:`distinct_readout_means` of values near one bound."""
-    table = tabulated_truncated_mean(mu, sigma, 0, hi)
-    if table is not None:
-        return table
-    pairs = mu + 1j * sigma  # one sortable value per pair (complex numbers sort by real, then imaginary part)
-    distinct, inverse = np.unique(pairs, return_inverse=True)
-    if len(distinct) > 0.5 * len(pairs):
-        return readout_moments(mu, sigma, 0, hi, truncate=True)[0]
-    return readout_moments(distinct.real, distinct.imag, 0, hi, truncate=True)[0][inverse.ravel()]
 
 
 def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effects: Sequence[Effect],

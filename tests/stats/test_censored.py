@@ -85,3 +85,24 @@ def test_truncated_readout_of_a_mean_far_beyond_a_bound():
                                     truncate=True)
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(var))
     assert np.all((mean >= 1) & (mean <= 65534)) and np.all(var >= 0)
+
+
+def test_truncated_readout_deep_beyond_a_bound_against_a_wide_sum():
+    """A mean 5–13 σ below 0 DN at σ ≈ 20 DN (16-bit dark frames, a DSNU as wide as the black level): the
+    readout conditional on 0 < y spreads over ≈ σ/z DN above the bound.  Against a brute sum over 600 levels
+    (upper-tail probabilities: no cancellation) the sum holds to rounding, and with the closed form where it
+    reaches (z ≤ σ/4) to its bound of the test above (3·10⁻⁴ DN; 10⁻³·σ² in the variance); before, the sum's window (10 σ less the distance beyond the bound) cut the conditional
+    mass short from z ≈ 9 on, and a value 10 σ beyond was put on the level next to the bound (0.67–1.5 DN off)."""
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(9)
+    sigma = rng.uniform(18.0, 22.0, 3000)
+    mu = -rng.uniform(5.0, 13.0, 3000) * sigma
+    k = np.arange(1.0, 601.0)
+    p = ndtr(-(k - 0.5 - mu[:, None]) / sigma[:, None]) - ndtr(-(k + 0.5 - mu[:, None]) / sigma[:, None])
+    want_mean = (p * k).sum(axis=1) / p.sum(axis=1)
+    want_var = (p * k * k).sum(axis=1) / p.sum(axis=1) - want_mean**2
+    for closed_form, tol in ((False, 1e-9), (True, 3e-4)):
+        mean, var = readout_moments(mu, sigma, 0, 65535, truncate=True, closed_form=closed_form)
+        np.testing.assert_allclose(mean, want_mean, rtol=0, atol=tol)
+        np.testing.assert_allclose(var, want_var, rtol=0, atol=tol * 3 if closed_form else 1e-8)

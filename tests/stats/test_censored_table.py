@@ -3,11 +3,13 @@
 The table replaces the exact sum over levels in the model check's predictions of dark frames near 0 DN; it must
 agree with the sum to far below what any fit resolves (10⁻⁶ DN: a pixel's mean over two frames has a noise of
 ≈ 0.3 DN), and refuse where a spline cannot follow the mean (σ below 0.1 DN, where the mean is a staircase in μ)
-or where the exact sum is not what it would replace (σ ≥ 2 DN: a closed form already)."""
+or where the values are too few to pay; and that the whole truncated mean (closed form, table, sums) agrees with
+the sum, including means deep below 0 DN at a wide noise, where the closed form does not reach."""
 import numpy as np
 
 from forensics.check.prediction import distinct_readout_means
-from forensics.stats.censored import TABLE_TOLERANCE, readout_moments, tabulated_truncated_mean
+from forensics.stats.censored import (TABLE_TOLERANCE, readout_moments, tabulated_truncated_mean,
+                                      truncated_readout_mean)
 
 
 def _dark_values(rng: np.random.Generator, n: int, sigma_lo: float, sigma_width: float, mu_lo: float, mu_hi: float):
@@ -30,7 +32,7 @@ def test_table_refused_where_it_cannot_hold():
     rng = np.random.default_rng(4)
     mu, sigma = _dark_values(rng, 60_000, 0.02, 0.01, 0.0, 3.0)  # a staircase in μ
     assert tabulated_truncated_mean(mu, sigma, 0, 4095) is None
-    mu, sigma = _dark_values(rng, 60_000, 1.0, 3.0, 0.0, 10.0)  # σ up to 4 DN: the closed form's domain
+    mu, sigma = _dark_values(rng, 60_000, 0.5, 20.0, -100.0, 10.0)  # σ over 40×: a grid bigger than it saves
     assert tabulated_truncated_mean(mu, sigma, 0, 4095) is None
     mu, sigma = _dark_values(rng, 100, 0.5, 0.0, 0.0, 3.0)  # too few values to pay
     assert tabulated_truncated_mean(mu, sigma, 0, 4095) is None
@@ -60,3 +62,19 @@ def test_single_level_values_as_the_sum_gives_them():
             summed = _summed_readout(mu + shift, sigma, 0, hi, truncate, 10.0)
             np.testing.assert_allclose(fast[0], summed[0], rtol=0, atol=1e-12)
             np.testing.assert_allclose(fast[1], summed[1], rtol=0, atol=1e-12)
+
+
+def test_truncated_mean_deep_below_zero_at_a_wide_noise():
+    # 16-bit dark frames with a 48 DN black level, 20 DN of read noise and a DSNU of 48 DN: a fifth of the pixels'
+    # means lie 5-10 σ below 0 DN, beyond the closed form's reach; with the rest (near 0, inside its reach) they
+    # must agree with the sum everywhere (closed form: within 2·10⁻⁴ DN, its documented bound; the table: within
+    # its tolerance), and the deep values must be tabulated, not summed one by one
+    rng = np.random.default_rng(7)
+    sigma = np.full(80_000, 19.9)
+    mu = np.concatenate([rng.uniform(-200.0, -100.0, 20_000), rng.uniform(-60.0, 150.0, 60_000)])
+    exact = readout_moments(mu, sigma, 0, 65535, truncate=True, closed_form=False)[0]
+    got = truncated_readout_mean(mu, sigma, 0, 65535)
+    assert np.max(np.abs(got - exact)) < 2e-4
+    deep = (0.5 - mu) / sigma > 5.0
+    assert np.max(np.abs(got[deep] - exact[deep])) < TABLE_TOLERANCE
+    assert tabulated_truncated_mean(mu[deep], sigma[deep], 0, 65535) is not None
