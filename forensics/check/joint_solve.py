@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse
 
 from forensics.check.local_solve import common_mode, common_mode_gram, dead_columns, normal_matrix, scaled_pinv
-from forensics.check.scene import kernel_estimate, kernel_transpose
+from forensics.check.scene import SCENE_SIZE, kernel_columns, kernel_estimate, kernel_transpose
 
 #: Conjugate gradients stop when the preconditioned residual's squared norm fell by this factor: the step is
 #: then as good as exact for one Gauss–Newton cycle (the next cycle starts from the new gradient).
@@ -46,15 +47,160 @@ class CoupledStep:
 
 
 def coupled_forward(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, delta: np.ndarray,
-                    kernel: Callable[[np.ndarray], np.ndarray] = kernel_estimate) -> np.ndarray:
-    """The linearised model's change of the prediction ``(R, H, W)`` for pattern changes ``delta`` (k, H, W)."""
+                    kernel: Callable[[np.ndarray], np.ndarray] = kernel_estimate,
+                    cache: dict | None = None) -> np.ndarray:
+    """The linearised model's change of the prediction ``(R, H, W)`` for pattern changes ``delta`` (k, H, W).
+    ``cache``: the cycle's, as for :func:`coupled_step` (its :class:`FactoredCoupling` is reused)."""
     out = sum(x * delta[j][None] for j, x in enumerate(X))
+    coupled = _coupled_frames(Z, F)
+    factored = _factored(X, Z, F, coupled, cache) if kernel is kernel_estimate else None
+    if factored is not None:
+        if coupled:
+            out[coupled] += F[coupled] * factored.spread(delta)
+        return out
     for r in range(F.shape[0]):
         if np.any(F[r]):
             moved = sum(z[r] * delta[j] for j, z in enumerate(Z))
             if np.any(moved):
                 out[r] += F[r] * kernel(moved)
     return out
+
+
+@dataclass
+class FactoredCoupling:
+    """Each pattern's Z over the coupled frames C as a common profile times a factor per frame plus what differs
+    from it at a few pixels: Z_rj = c_rj·z_j + e_rj, e_rj nonzero only on ``support``.
+
+    What differs between frames is the scene estimate's excluded outliers and the refill at defects; elsewhere
+    the deviation at zero light scales with the frame (exposure, temperature, gain).  With it, Σ_r Z_rj·Kᵀ(u_r)
+    is z_j·Kᵀ(Σ_r c_rj·u_r) plus Σ_r e_rj·Kᵀ(u_r) on the support, and K(Σ_j Z_rj·Δ_j) likewise: k kernels
+    instead of one per frame, the rest from K's columns at the support (:func:`~forensics.check.scene.kernel_columns`).
+    The same numbers to rounding (residuals below :data:`FACTOR_RESIDUAL` of the largest |Z| are left out)."""
+
+    coupled: list[int]
+    profiles: list[np.ndarray]  #: per pattern, z_j (H, W)
+    factors: np.ndarray  #: (|C|, k): c_rj
+    support: np.ndarray  #: flat pixel indices where some e_rj is not 0
+    residuals: np.ndarray  #: (k, |C|, len(support)): e_rj there
+    _columns: dict = field(default_factory=dict)
+
+    def columns(self, power: int) -> sparse.csr_array:
+        """K's columns at the support (weights to ``power``), made once."""
+        if power not in self._columns:
+            self._columns[power] = kernel_columns(self.profiles[0].shape, self.support, power)
+        return self._columns[power]
+
+    def gather(self, u: np.ndarray, power: int = 1) -> np.ndarray:
+        """Σ over the coupled frames of Z_rj·Kᵀ(u_r) for ``u`` (|C|, H, W) (``power`` 2: K's squared weights, the
+        factors and residuals still to the first power): (k, H, W)."""
+        out = np.stack([z * kernel_transpose(np.tensordot(self.factors[:, j], u, 1), power)
+                        for j, z in enumerate(self.profiles)])
+        if self.support.size:
+            back = self.columns(power) @ u.reshape(len(u), -1).T  # (m, |C|): Kᵀ(u_r) at the support
+            for j in range(len(out)):
+                out[j].flat[self.support] += np.einsum("rm,mr->m", self.residuals[j], back)
+        return out
+
+    def spread(self, delta: np.ndarray) -> np.ndarray:
+        """K(Σ_j Z_rj·Δ_j) in every coupled frame: (|C|, H, W)."""
+        common = np.stack([kernel_estimate(z * d) for z, d in zip(self.profiles, delta)])
+        out = np.tensordot(self.factors, common, 1)
+        if self.support.size:
+            moved = np.einsum("jrm,jm->mr", self.residuals, delta.reshape(len(delta), -1)[:, self.support])
+            out += (self.columns(1).T @ moved).T.reshape(out.shape)
+        return out
+
+    def pair_sums(self, u: np.ndarray) -> np.ndarray:
+        """Σ over the coupled frames of Z_ri·Z_rj·Kᵀ²(u_r) for ``u`` (|C|, H, W): (k, k, H, W) (the preconditioner's
+        coupling term)."""
+        k = len(self.profiles)
+        out = np.empty((k, k, *self.profiles[0].shape))
+        back = self.columns(2) @ u.reshape(len(u), -1).T if self.support.size else None  # (m, |C|)
+        for i in range(k):
+            for j in range(i, k):
+                cc = self.factors[:, i] * self.factors[:, j]
+                out[i, j] = self.profiles[i] * self.profiles[j] * kernel_transpose(np.tensordot(cc, u, 1), 2)
+                if back is not None:
+                    zi = self.factors[:, i][:, None] * self.profiles[i].flat[self.support][None] + self.residuals[i]
+                    zj = self.factors[:, j][:, None] * self.profiles[j].flat[self.support][None] + self.residuals[j]
+                    extra = zi * zj - cc[:, None] * (self.profiles[i].flat[self.support]
+                                                     * self.profiles[j].flat[self.support])[None]
+                    out[i, j].flat[self.support] += np.einsum("rm,mr->m", extra, back)
+                out[j, i] = out[i, j]
+        return out
+
+
+#: A pattern's Z in a frame is taken to differ from its profile times the frame's factor where it does by more than
+#: this share of its largest |Z| (below: the factors' rounding).
+FACTOR_RESIDUAL = 1e-12
+#: The factored form is used while its support is at most this share of the pixels (beyond, per-frame kernels).
+FACTOR_SUPPORT = 0.25
+
+
+def profiles_and_factors(Z: list[np.ndarray], coupled: list[int],
+                         exact_scale: bool = False) -> tuple[list[np.ndarray], np.ndarray]:
+    """Per pattern, the common profile z_j (its Z in the coupled frame where it is largest) and each coupled
+    frame's factor c_rj: ``(profiles, factors (|C|, k))``.  The factor is the least-squares one (what the normal
+    operator's approximation is best with), or with ``exact_scale`` the median ratio of the frame's Z to the
+    profile: the frames differ from the profile at a few pixels (excluded outliers, defects' refills), a
+    least-squares factor takes a share of those and leaves a small residual at every pixel, the median ratio is
+    the exact scale of all the others (:class:`FactoredCoupling` needs the residual sparse)."""
+    profiles, factors = [], []
+    for zj in Z:
+        norms = np.array([float(np.sum(zj[r] ** 2)) for r in coupled])
+        ref = zj[coupled[int(np.argmax(norms))]]
+        profiles.append(ref)
+        if exact_scale:
+            on = np.abs(ref) > 1e-6 * float(np.max(np.abs(ref)))
+            factors.append(np.array([float(np.median(zj[r][on] / ref[on])) if on.any() else 0.0 for r in coupled]))
+        else:
+            den = float(np.sum(ref * ref))
+            factors.append(np.array([float(np.sum(zj[r] * ref)) / den if den > 0 else 0.0 for r in coupled]))
+    return profiles, np.stack(factors, axis=1)
+
+
+def factor_coupling(Z: list[np.ndarray], coupled: list[int]) -> FactoredCoupling | None:
+    """The :class:`FactoredCoupling` of ``Z`` over the ``coupled`` frames; None where it would not pay (a support
+    over :data:`FACTOR_SUPPORT` of the pixels) or the image is too small for :func:`kernel_columns`."""
+    H, W = Z[0].shape[1:]
+    if not coupled or H <= SCENE_SIZE or W <= SCENE_SIZE:
+        return None
+    profiles, factors = profiles_and_factors(Z, coupled, exact_scale=True)
+    residuals = [zj[coupled] - factors[:, j, None, None] * profiles[j][None] for j, zj in enumerate(Z)]
+    off = np.zeros((H, W), bool)
+    for zj, e in zip(Z, residuals):
+        off |= np.any(np.abs(e) > FACTOR_RESIDUAL * float(np.max(np.abs(zj[coupled]))), axis=0)
+    support = np.flatnonzero(off)
+    if support.size > FACTOR_SUPPORT * H * W:
+        return None
+    kept = np.stack([e.reshape(len(coupled), -1)[:, support] for e in residuals])
+    return FactoredCoupling(coupled, profiles, factors, support, kept)
+
+
+def _coupled_frames(Z: list[np.ndarray], F: np.ndarray) -> list[int]:
+    """The frames where the neighbour term acts (F) and some pattern moves it (Z)."""
+    return [r for r in range(F.shape[0]) if np.any(F[r]) and any(np.any(z[r]) for z in Z)]
+
+
+def _cycle_cache(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, cache: dict) -> dict:
+    """``cache``, emptied when it was kept for other ``X``, ``Z``, ``F`` (other objects)."""
+    held = cache.get("operands")
+    if held is None or not (len(held[0]) == len(X) and all(a is b for a, b in zip(held[0], X))
+                            and len(held[1]) == len(Z) and all(a is b for a, b in zip(held[1], Z)) and held[2] is F):
+        cache.clear()
+        cache["operands"] = (list(X), list(Z), F)
+    return cache
+
+
+def _factored(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, coupled: list[int],
+              cache: dict | None) -> FactoredCoupling | None:
+    """:func:`factor_coupling`, made once per cycle in ``cache``."""
+    if cache is None:
+        return factor_coupling(Z, coupled)
+    cache = _cycle_cache(X, Z, F, cache)
+    if "factored" not in cache:
+        cache["factored"] = factor_coupling(Z, coupled)
+    return cache["factored"]
 
 
 def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray, residual: np.ndarray,
@@ -85,8 +231,9 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
     """
     k = len(X)
     shape = X[0].shape[1:]
-    coupled = [r for r in range(F.shape[0]) if np.any(F[r]) and any(np.any(z[r]) for z in Z)]
-    held = _cached_operands(X, Z, F, weight, coupled, kernel_t, cache)
+    coupled = _coupled_frames(Z, F)
+    factored = _factored(X, Z, F, coupled, cache) if kernel_t is kernel_transpose else None
+    held = _cached_operands(X, Z, F, weight, coupled, kernel_t, cache, factored)
     inv = held.inverse
     centred_mask = np.asarray(centred, bool)
     gram = common_mode_gram(inv, centred_mask, members) if centred_mask.any() else None
@@ -102,10 +249,13 @@ def coupled_step(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight
     # least-squares solution itself
     v = weight * residual
     g = np.stack([np.einsum("r...,r...->...", x, v) for x in X])
-    for r in coupled:
-        back = kernel_t(F[r] * v[r])
-        for j, z in enumerate(Z):
-            g[j] += z[r] * back
+    if factored is not None:
+        g += factored.gather(F[coupled] * v[coupled])
+    else:
+        for r in coupled:
+            back = kernel_t(F[r] * v[r])
+            for j, z in enumerate(Z):
+                g[j] += z[r] * back
     z = precondition(g)
     rz = float(np.sum(g * z))
     if not coupled or rz <= 0.0:  # the per-pixel solve is exact
@@ -168,14 +318,7 @@ def operator_blocks(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, wei
     """The :class:`OperatorBlocks` of the linearised model (``own``: its :func:`normal_matrix`, if made)."""
     k = len(X)
     own = normal_matrix(X, weight) if own is None else own
-    profiles, factors = [], []
-    for zj in Z:
-        norms = np.array([float(np.sum(zj[r] ** 2)) for r in coupled])
-        ref = zj[coupled[int(np.argmax(norms))]]
-        den = float(np.sum(ref * ref))
-        profiles.append(ref)
-        factors.append(np.array([float(np.sum(zj[r] * ref)) / den if den > 0 else 0.0 for r in coupled]))
-    c = np.stack(factors, axis=1)  # (|C|, k)
+    profiles, c = profiles_and_factors(Z, coupled)  # c: (|C|, k)
     fw = F[coupled] * weight[coupled]
     cross = np.stack([np.einsum("r...,rj->j...", X[i][coupled] * fw, c) for i in range(k)])
     spread = np.einsum("ri,rj,r...->ij...", c, c, fw * F[coupled])
@@ -198,7 +341,8 @@ class _Operands:
 
 
 def _cached_operands(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray,
-                     coupled: list[int], kernel_t: Callable[..., np.ndarray], cache: dict | None) -> _Operands:
+                     coupled: list[int], kernel_t: Callable[..., np.ndarray], cache: dict | None,
+                     factored: FactoredCoupling | None = None) -> _Operands:
     """The preconditioner and operator blocks, from ``cache`` when they were built there for the same ``X``,
     ``Z``, ``F`` (the same objects) and the same values of ``weight`` (a digest of its bytes, O(n) against the
     build's O(k²·R·n)).
@@ -209,30 +353,34 @@ def _cached_operands(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, we
     dropped), hence the digest."""
     def build() -> _Operands:
         own = normal_matrix(X, weight)
-        return _Operands(_preconditioner(X, Z, F, weight, coupled, kernel_t, own.copy()),
+        return _Operands(_preconditioner(X, Z, F, weight, coupled, kernel_t, own.copy(), factored),
                          lambda: operator_blocks(X, Z, F, weight, coupled, own))
 
     if cache is None:
         return build()
     key = hashlib.blake2b(np.ascontiguousarray(weight).view(np.uint8).data, digest_size=16).digest()
-    held = cache.get("operands")
-    if held is None or not (len(held[0]) == len(X) and all(a is b for a, b in zip(held[0], X))
-                            and len(held[1]) == len(Z) and all(a is b for a, b in zip(held[1], Z)) and held[2] is F):
-        cache.clear()
-        cache["operands"] = (list(X), list(Z), F)
+    cache = _cycle_cache(X, Z, F, cache)
     if key not in cache:
         cache[key] = build()
     return cache[key]
 
 
 def _preconditioner(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray,
-                    coupled: list[int], kernel_t: Callable[..., np.ndarray], A: np.ndarray | None = None) -> np.ndarray:
+                    coupled: list[int], kernel_t: Callable[..., np.ndarray], A: np.ndarray | None = None,
+                    factored: FactoredCoupling | None = None) -> np.ndarray:
     """Per pixel, the inverse of the normal matrix's own block — the pixel's own frames plus what its values do
     to its neighbours' estimates (Σ_q K_qp²·F²·w: a border pixel seen only in dark frames is otherwise read as
     far less determined than it is, and conjugate gradients took 140 iterations, not 40)."""
     k = len(X)
     A = normal_matrix(X, weight) if A is None else A  # (changed in place: pass a copy)
     own = ~dead_columns(A)  # a value without information of its own is not solved for (it stays)
+    if factored is not None and coupled:
+        pairs = factored.pair_sums(F[coupled] ** 2 * weight[coupled])
+        for i in range(k):
+            for j in range(i, k):
+                A[..., i, j] += np.where(own[..., i] & own[..., j], pairs[i, j], 0.0)
+                A[..., j, i] = A[..., i, j]
+        coupled = []
     for r in coupled:
         spread = kernel_t(F[r] ** 2 * weight[r], 2)
         for i in range(k):

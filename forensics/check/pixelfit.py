@@ -370,7 +370,7 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         if coupling is not None:  # profiled against the joint pattern solve, neighbours' term included
             Z, F, cache = coupling
             delta = coupled_step(X_local, Z, F, wp, column, centred, cache=cache, members=members).delta
-            J.append((column - coupled_forward(X_local, Z, F, delta)) * np.sqrt(w))
+            J.append((column - coupled_forward(X_local, Z, F, delta, cache=cache)) * np.sqrt(w))
         else:
             J.append(proj.project(column * np.sqrt(w)))
     # the residual is already least squares in the patterns (the joint solve), else projected pixel by pixel

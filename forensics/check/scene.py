@@ -87,6 +87,46 @@ def _edge_operator(shape: tuple[int, int], kernel_size: int, power: int, transpo
     return matrix.T.tocsr() if transpose else matrix
 
 
+def _band_position(py: np.ndarray, px: np.ndarray, shape: tuple[int, int], kernel_size: int) -> np.ndarray:
+    """Each edge-band pixel's position in :func:`_edge_band`'s order (whole edge rows first, then the edge
+    columns of the rows between)."""
+    h = kernel_size // 2
+    H, W = shape
+    band_row = np.where(py < h, py, py - (H - 2 * h))  # among the 2h whole edge rows
+    col = np.where(px < h, px, px - (W - 2 * h))  # among the 2h edge columns
+    return np.where((py < h) | (py >= H - h), band_row * W + px, 2 * h * W + (py - h) * (2 * h) + col)
+
+
+def kernel_columns(shape: tuple[int, int], pixels: np.ndarray, power: int = 1) -> sparse.csr_array:
+    """Columns ``pixels`` (flat indices) of :func:`kernel_estimate`'s matrix K (default kernel, weights to the power
+    ``power``), as the rows of a sparse ``(len(pixels), H·W)`` matrix: row i holds K_pq for q = ``pixels[i]``.
+    ``M @ u`` is then ``Kᵀ·u`` at those pixels and ``M.T @ e`` is ``K·e`` for ``e`` nonzero only there.  For
+    images larger than the kernel in both directions (smaller ones reflect: :func:`kernel_transpose` probes).
+
+    Why: the joint solve needs Kᵀ per frame only where the frames' coupling differs from a common profile (a
+    few pixels: :class:`~forensics.check.joint_solve.FactoredCoupling`); a transpose over the whole frame per
+    frame was a sixth of the check's time on 320 × 240 frames."""
+    size = SCENE_SIZE
+    h = size // 2
+    H, W = shape
+    if H <= 2 * h + 1 or W <= 2 * h + 1:
+        raise ValueError("kernel_columns needs an image larger than the kernel in both directions")
+    pixels = np.asarray(pixels, np.intp)
+    qy, qx = np.divmod(pixels, W)
+    dy, dx = (a.ravel() for a in np.mgrid[-h:h + 1, -h:h + 1])
+    py, px = qy[:, None] - dy[None], qx[:, None] - dx[None]  # K_pq ≠ 0 only for q = p + offset
+    inside = (py >= 0) & (py < H) & (px >= 0) & (px < W)
+    interior = inside & (py >= h) & (py < H - h) & (px >= h) & (px < W - h)
+    weights = np.where(interior, KERNEL.ravel()[None], 0.0)
+    band = inside & ~interior
+    _, _, _, band_weights = _edge_band((H, W), size)
+    slot = np.broadcast_to(np.arange(size * size), py.shape)[band]  # the offset's place in p's clipped window
+    weights[band] = band_weights[slot, _band_position(py[band], px[band], (H, W), size)]
+    keep = weights != 0
+    rows = np.broadcast_to(np.arange(pixels.size)[:, None], py.shape)
+    return sparse.csr_array((weights[keep] ** power, (rows[keep], (py * W + px)[keep])), shape=(pixels.size, H * W))
+
+
 def edge_estimates(image: np.ndarray, estimate: np.ndarray, kernel_size: int = SCENE_SIZE) -> None:
     """Replace, in ``estimate``, the values within ``kernel_size // 2`` of the image's edge by the leave-one-out
     quadratic fitted to the part of the window inside the image.
