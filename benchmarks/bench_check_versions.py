@@ -66,15 +66,6 @@ def differences(a, b, rtol: float, path: str = "") -> list[str]:
     return [] if a == b else [f"{path}: {a!r} vs {b!r}"]
 
 
-def finite(value):
-    """``value`` with every non-finite float as None (standard JSON)."""
-    if isinstance(value, dict):
-        return {k: finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [finite(v) for v in value]
-    return None if isinstance(value, float) and not math.isfinite(value) else value
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--base", required=True, help="git revision to compare against")
@@ -107,10 +98,11 @@ def main() -> int:
         print("  " + line)
     if args.json:
         from forensics._shared.atomic import write_text
+        from forensics._shared.jsonsafe import dumps
 
         record = {"case": args.case, "base": args.base, "new": args.new or "working tree", "results": results,
                   "differences": diff}
-        write_text(args.json, json.dumps(finite(record), default=str, indent=1, allow_nan=False))
+        write_text(args.json, dumps(record, indent=1))
     return 0
 
 

@@ -77,7 +77,6 @@ class FactoredCoupling:
     instead of one per frame, the rest from K's columns at the support (:func:`~forensics.check.scene.kernel_columns`).
     The same numbers to rounding (residuals below :data:`FACTOR_RESIDUAL` of the largest |Z| are left out)."""
 
-    coupled: list[int]
     profiles: list[np.ndarray]  #: per pattern, z_j (H, W)
     factors: np.ndarray  #: (|C|, k): c_rj
     support: np.ndarray  #: flat pixel indices where some e_rj is not 0
@@ -90,13 +89,12 @@ class FactoredCoupling:
             self._columns[power] = kernel_columns(self.profiles[0].shape, self.support, power)
         return self._columns[power]
 
-    def gather(self, u: np.ndarray, power: int = 1) -> np.ndarray:
-        """Σ over the coupled frames of Z_rj·Kᵀ(u_r) for ``u`` (|C|, H, W) (``power`` 2: K's squared weights, the
-        factors and residuals still to the first power): (k, H, W)."""
-        out = np.stack([z * kernel_transpose(np.tensordot(self.factors[:, j], u, 1), power)
+    def gather(self, u: np.ndarray) -> np.ndarray:
+        """Σ over the coupled frames of Z_rj·Kᵀ(u_r) for ``u`` (|C|, H, W): (k, H, W)."""
+        out = np.stack([z * kernel_transpose(np.tensordot(self.factors[:, j], u, 1))
                         for j, z in enumerate(self.profiles)])
         if self.support.size:
-            back = self.columns(power) @ u.reshape(len(u), -1).T  # (m, |C|): Kᵀ(u_r) at the support
+            back = self.columns(1) @ u.reshape(len(u), -1).T  # (m, |C|): Kᵀ(u_r) at the support
             for j in range(len(out)):
                 out[j].flat[self.support] += np.einsum("rm,mr->m", self.residuals[j], back)
         return out
@@ -174,7 +172,7 @@ def factor_coupling(Z: list[np.ndarray], coupled: list[int]) -> FactoredCoupling
     if support.size > FACTOR_SUPPORT * H * W:
         return None
     kept = np.stack([e.reshape(len(coupled), -1)[:, support] for e in residuals])
-    return FactoredCoupling(coupled, profiles, factors, support, kept)
+    return FactoredCoupling(profiles, factors, support, kept)
 
 
 def _coupled_frames(Z: list[np.ndarray], F: np.ndarray) -> list[int]:

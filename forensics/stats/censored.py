@@ -164,9 +164,8 @@ def _single_level(mu: np.ndarray, sigma: np.ndarray, at: np.ndarray, lo: int, hi
         # at a bound, what counts is the inner level next to it against the one after: their densities differ by
         # exp(−(2d + 1)/2σ²), d = μ's distance to the bound's edge (a mean 10 σ beyond the bound at σ = 20 DN
         # leaves its inner mass spread over ≈ 2 DN, not on one level)
-        d = np.where(c <= lo, lo + 0.5 - m, np.where(c >= hi, m - (hi - 0.5), np.nan))
-        at_bound = np.isfinite(d)
-        single = np.where(at_bound, 2.0 * np.where(at_bound, d, 0.0) + 1.0 >= (reach * s) ** 2, single)
+        d = np.where(c <= lo, lo + 0.5 - m, m - (hi - 0.5))
+        single = np.where((c <= lo) | (c >= hi), 2.0 * d + 1.0 >= (reach * s) ** 2, single)
     level = np.clip(c, lo + 1, hi - 1) if truncate else c
     mean[at[single]] = level[single]
     var[at[single]] = 0.0
