@@ -102,7 +102,9 @@ def test_truncated_readout_deep_beyond_a_bound_against_a_wide_sum():
     p = ndtr(-(k - 0.5 - mu[:, None]) / sigma[:, None]) - ndtr(-(k + 0.5 - mu[:, None]) / sigma[:, None])
     want_mean = (p * k).sum(axis=1) / p.sum(axis=1)
     want_var = (p * k * k).sum(axis=1) / p.sum(axis=1) - want_mean**2
-    for closed_form, tol in ((False, 1e-9), (True, 3e-4)):
-        mean, var = readout_moments(mu, sigma, 0, 65535, truncate=True, closed_form=closed_form)
-        np.testing.assert_allclose(mean, want_mean, rtol=0, atol=tol)
-        np.testing.assert_allclose(var, want_var, rtol=0, atol=tol * 3 if closed_form else 1e-8)
+    mean, var = readout_moments(mu, sigma, 0, 65535, truncate=True, closed_form=False)
+    np.testing.assert_allclose(mean, want_mean, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(var, want_var, rtol=0, atol=1e-8)
+    mean, var = readout_moments(mu, sigma, 0, 65535, truncate=True)
+    assert np.max(np.abs(mean - want_mean)) < 3e-4
+    assert np.max(np.abs(var - want_var) / sigma**2) < 1e-3
