@@ -14,6 +14,7 @@ Usage::
     .venv/bin/python benchmarks/sweep_check.py --conventions project,camera,8bit,14bit --seeds 3 --null 5
     .venv/bin/python benchmarks/sweep_check.py --combo prnu,dark_current --combo gain,accelerating_growth
     .venv/bin/python benchmarks/sweep_check.py --conventions project,camera,8bit,14bit --scheduler tcp://HEAD:8786
+    .venv/bin/python benchmarks/sweep_check.py --done-when --json sweep.json   # issue 27's whole sweep, one pool
 
 Runs go through the execution layer (``--workers`` local processes, or a Dask cluster with ``--scheduler``);
 with ``--json OUT`` every finished run is kept in ``OUT.partial/`` and a stopped sweep, started again with the
@@ -22,6 +23,7 @@ same arguments, resumes from the runs it finished.
 With ``--combo A,B[,C]`` (repeatable; ``none`` for nothing hidden) the sweep hides several effects at once and
 runs forward selection (``forensics model check --auto``) instead: per combination, the seeds where it added
 exactly the hidden effects and ended with nothing flagged, and the median errors before (base) and after.
+Given with ``--conventions`` or ``--only``, both parts run in one pool (``--done-when``: the issue's whole sweep).
 
 Criteria (per run):
 * base: the hidden effect is flagged and ranked first;
@@ -46,6 +48,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from forensics._shared.atomic import write_text  # noqa: E402 — after the path set-up
 
 PIXEL_EFFECTS = ("prnu", "dark_current", "gain", "nonlinearity", "dsnu")
+DONE_WHEN_CONVENTIONS = ("project", "14bit", "camera", "8bit")
+DONE_WHEN_COMBOS = ("prnu,dark_current", "dark_current,shot_noise", "gain,accelerating_growth",
+                    "prnu,dark_current,shot_noise", "gain,clusters,accelerating_growth", "none")
+CONVENTION_COST_ORDER = {"camera": 0, "8bit": 1, "14bit": 2, "project": 3}
 
 
 def median_of(values: list) -> float:
@@ -133,17 +139,14 @@ def run_auto(job: tuple[tuple[str, ...], int]) -> dict:
             "rejected": [a.reason for a in sel.rejected]}
 
 
-def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_out: str | None,
-                scheduler: str | None = None) -> int:
+def combo_jobs(combos: list[tuple[str, ...]], seeds: int) -> list[tuple[tuple[str, ...], int]]:
+    return [(c, s) for c in combos for s in range(1, seeds + 1)]
+
+
+def print_combo_tables(runs: list[dict], combos: list[tuple[str, ...]]) -> None:
     """The combination sweep through forward selection: one Markdown table and the failing runs."""
     import numpy as np
 
-    jobs = [(c, s) for c in combos for s in range(1, seeds + 1)]
-    started = time.perf_counter()
-    runs = run_logged(run_auto, jobs, workers, json_out, scheduler)
-    elapsed = time.perf_counter() - started
-    print(f"# Forward selection (--auto): {len(combos)} combination(s) × {seeds} seeds "
-          f"({elapsed:.0f} s on {workers} worker(s))\n")
     print("| hidden effects | added exactly the hidden ones | ends with nothing flagged | final error.pixel ≤ 1.1 | "
           "all three | error.pixel base → final (median) | variance | growth | median steps |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -168,9 +171,11 @@ def main_combos(combos: list[tuple[str, ...]], seeds: int, workers: int, json_ou
             path = " → ".join(f"{lab} (pixel {fmt(px)}, flagged {fl or '—'})" for lab, px, fl, _ in r["path"])
             print(f"- {r['combo']}, seed {r['seed']}: {path}; stopped: {r['stopped']}")
     print(f"\nmean time per dataset (generate + forward selection): {np.mean([r['seconds'] for r in runs]):.1f} s")
-    if json_out:
-        write_text(json_out, json.dumps(runs, indent=1, default=float), force=True)
-    return 0
+
+
+def run_any(job: tuple) -> dict:
+    """One job of either part, so both parts share one pool: a combination job is ``(combo_tuple, seed)``."""
+    return run_auto(job) if isinstance(job[0], tuple) else run_guarded(job)
 
 
 def run_logged(fn, jobs: list, workers: int, json_out: str | None, scheduler: str | None = None) -> list[dict]:
@@ -274,36 +279,58 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--conventions", metavar="NAME,…",
                         help="run the sweep on data of each of these generator conventions (fixtures.hidden "
                              "CONVENTIONS: " + ", ".join(CONVENTIONS) + "); one table per convention")
+    parser.add_argument("--done-when", action="store_true",
+                        help="the issue's whole sweep in one run: conventions " + ",".join(DONE_WHEN_CONVENTIONS) +
+                             " and the combinations " + "; ".join(DONE_WHEN_COMBOS) + " (with the default seeds)")
     args = parser.parse_args(argv)
-    if args.combo:
-        combos = [tuple(x.strip() for x in c.split(",") if x.strip()) for c in args.combo]
-        return main_combos(combos, args.seeds, args.workers, args.json, args.scheduler)
+    if args.done_when:
+        args.conventions = args.conventions or ",".join(DONE_WHEN_CONVENTIONS)
+        args.combo = args.combo or list(DONE_WHEN_COMBOS)
+    combos = [tuple(x.strip() for x in c.split(",") if x.strip()) for c in args.combo or []]
+    # --combo alone runs the combinations only (as before); with --conventions or --only, both parts in one pool
+    singles = not combos or bool(args.conventions or args.only)
     effects = args.only or list(CANDIDATES) + ([] if args.no_extra else list(EXTRA))
     convs = [c.strip() for c in args.conventions.split(",") if c.strip()] if args.conventions else ["project"]
     for c in convs:
         convention(c)  # unknown names fail before any work
-    jobs = [(e, s, c) for c in convs for e in effects for s in range(1, args.seeds + 1)] + \
-        [("none", s, c) for c in convs for s in range(1, args.null + 1)]
+    jobs: list[tuple] = []
+    if singles:
+        jobs = [(e, s, c) for c in convs for e in effects for s in range(1, args.seeds + 1)] + \
+            [("none", s, c) for c in convs for s in range(1, args.null + 1)]
+        # Longest first, so the workers finish together: the per-dataset cost is set by the convention's frame
+        # size and depth (RESULTS_check.md: camera ≈ 90 s, 8bit ≈ 30 s, 14bit ≈ 16 s, project ≈ 9 s of a worker),
+        # and a null dataset runs one check where the others run two.
+        jobs.sort(key=lambda j: (CONVENTION_COST_ORDER.get(j[2], len(CONVENTION_COST_ORDER)), j[0] == "none"))
+    jobs += combo_jobs(combos, args.seeds)
     started = time.perf_counter()
-    runs = run_logged(run_guarded, jobs, args.workers, args.json, args.scheduler)
+    runs = run_logged(run_any, jobs, args.workers, args.json, args.scheduler)
     elapsed = time.perf_counter() - started
-    header = (f"# Model-check sweep: {len(effects)} candidate(s) × {args.seeds} seeds + {args.null} null seeds "
-              f"({elapsed:.0f} s on {args.workers} worker(s))")
-    if args.conventions:
-        print(header + f", conventions {', '.join(convs)}\n")
+    singles_runs = [r for r in runs if "combo" not in r]
+    combo_runs = [r for r in runs if "combo" in r]
+    parts = []
+    if singles:
+        parts.append(f"{len(effects)} candidate(s) × {args.seeds} seeds + {args.null} null seeds"
+                     + (f", conventions {', '.join(convs)}" if args.conventions else ""))
+    if combos:
+        parts.append(f"forward selection (--auto) on {len(combos)} combination(s) × {args.seeds} seeds")
+    print(f"# Model-check sweep: {'; '.join(parts)} ({elapsed:.0f} s on {args.workers} worker(s))\n")
+    if singles and args.conventions:
         for conv in convs:
             d = convention(conv)
             print(f"## Convention {conv}: {d.bit_depth}-bit {d.shape[1]}×{d.shape[0]}, {len(d.ages)} epochs, black level "
                   f"{d.black_level:g} DN, light pedestal {d.pedestal * d.level_scale:g} DN, read noise {d.read_noise:g} DN "
                   f"({'also' if d.noise_on_stuck else 'not'} on stuck pixels), vignetting {d.vignetting:g}, stuck share "
                   f"{d.rates[1] / sum(d.rates):.2g}, ISO gain {d.iso_gain}\n")
-            print_tables([r for r in runs if r["convention"] == conv], effects)
-    else:
-        print(header + "\n")
-        print_tables(runs, effects)
-    import numpy as np
+            print_tables([r for r in singles_runs if r["convention"] == conv], effects)
+    elif singles:
+        print_tables(singles_runs, effects)
+    if singles:
+        import numpy as np
 
-    print(f"\nmean time per dataset (generate + checks): {np.mean([r['seconds'] for r in runs]):.1f} s")
+        print(f"\nmean time per dataset (generate + checks): {np.mean([r['seconds'] for r in singles_runs]):.1f} s")
+    if combos:
+        print("\n## Forward selection (--auto), project convention\n")
+        print_combo_tables(combo_runs, combos)
     if args.json:
         write_text(args.json, json.dumps(runs, indent=1, default=float), force=True)
     return 0
