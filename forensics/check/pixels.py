@@ -286,21 +286,29 @@ def near_bound_conditions(meas: Measurements, usable: np.ndarray, classes: np.nd
     return bad > share * np.maximum(normal.sum(axis=(1, 2)), 1)
 
 
-def _pooled_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray, pools: Sequence[Any]) -> dict[Any, tuple[float, float]]:
-    """Per pool of conditions, one law var = a + b·level fitted (OLS) over ``mask`` of all its conditions
-    (b = 0 with fewer than 10 pixels or no spread of level; pools without pixels are left out)."""
+def _pooled_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray, pools: Sequence[Any],
+                df: Sequence[float]) -> dict[Any, tuple[float, float]]:
+    """Per pool of conditions, one law var = a + b·level fitted over ``mask`` of all its conditions (``df``: the
+    degrees of freedom of each condition's variances; b = 0 with fewer than 10 pixels; pools without pixels
+    are left out).
+
+    The pixels are partially stuck ones, whose levels span from just above the bound to thousands of DN (a hot
+    pixel's charge carries its own shot noise), and each variance is of a few frames: the law is weighted by
+    each variance's own precision and its outliers left out (:func:`~forensics.check.singles.robust_variance_line`,
+    the dark law's fit).  Ordinary least squares let the brightest, noisiest variances decide and left the law
+    negative at the dim end (camera convention, ISO 200 darks: a = −1,015 DN², so six hot pixels at 260 DN were
+    weighted as if they had the rounding noise only).
+    """
     out = {}
     labels = np.asarray(pools, dtype=object)
+    dfs = np.broadcast_to(np.asarray(df, float)[:, None, None], mask.shape)
     for pool in dict.fromkeys(pools):
         sel = np.array([p == pool for p in labels])
         m = mask & sel[:, None, None]
         lv, vv = level[m], var[m]
         if not lv.size:
             continue
-        lc = lv - lv.mean()
-        sxx = float(np.sum(lc * lc))
-        b = float(np.sum(lc * (vv - vv.mean())) / sxx) if lv.size >= 10 and sxx > 0 else 0.0
-        out[pool] = (float(vv.mean() - b * lv.mean()), b)
+        out[pool] = robust_variance_line(lv, vv, dfs[m])[:2] if lv.size >= 10 else (float(vv.mean()), 0.0)
     return out
 
 
@@ -346,7 +354,7 @@ def noise_floor(meas: Measurements, rep: list[int], usable: np.ndarray, classes:
     near = near_bound_conditions(meas, usable, classes)
     if near.any():
         lifted = usable & (classes == PART) & near[:, None, None]
-        laws = _pooled_law(level, var, lifted, gain_pools)
+        laws = _pooled_law(level, var, lifted, gain_pools, [g.n - 1 for g in rgroups])
         for r in np.flatnonzero(near):
             if gain_pools[r] in laws:
                 a_p, b_p = laws[gain_pools[r]]
