@@ -464,8 +464,8 @@ def _derivative(predict, device: Device, effects: list[Effect], i: int, n: str, 
     barely see).
     """
     v = getattr(effects[i], n)
-    lo, hi = effects[i].bounds(n)
-    column = None
+    hi = effects[i].bounds(n)[1]
+    column = raw
     for relative in (FD_STEP, WEAK_FD_STEP):
         d = relative * (1 + abs(v))
         if v + d > hi:
@@ -475,6 +475,8 @@ def _derivative(predict, device: Device, effects: list[Effect], i: int, n: str, 
         if float(np.sum(w * column * column)) * (1 + abs(v)) ** 2 >= 1.0:
             break
     return column
+
+
 #: A global step whose χ² fell within this fraction of what the linearised model predicts is taken as it is;
 #: otherwise the curvature along it is measured (:func:`_line_minimum`).
 LINEAR_ENOUGH = 0.2
