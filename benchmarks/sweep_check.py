@@ -257,6 +257,32 @@ def print_tables(runs: list[dict], effects: list[str]) -> None:
                       f"{fmt(r['add_error']['growth'])}")
 
 
+def print_summary(runs: list[dict], effects: list[str], convs: list[str]) -> None:
+    """One table across conventions: per hidden effect, the runs meeting every criterion (and which criterion
+    the others missed: named first, fixed by adding it, the effect's own criterion); the null runs flagging
+    nothing.  The issue's bar: ≥ 9/10 per effect, ≥ 19/20 null."""
+    print("| hidden effect | " + " | ".join(convs) + " |")
+    print("|---|" + "---|" * len(convs))
+    for e in [*effects, "none"]:
+        cells = []
+        for c in convs:
+            rs = [r for r in runs if r["effect"] == e and r["convention"] == c and "crashed" not in r]
+            crashed = sum(1 for r in runs if r["effect"] == e and r["convention"] == c and "crashed" in r)
+            n = len(rs) + crashed
+            if not n:
+                cells.append("—")
+                continue
+            ok = sum(bool(r["pass"]) for r in rs)
+            cell = f"{ok}/{n}"
+            if e != "none" and ok < n:
+                cell += (f" (first {sum(bool(r['detect']) for r in rs)}, fixed {sum(bool(r['fixed']) for r in rs)}, "
+                         f"criterion {sum(bool(r['specific']) for r in rs)}" + (f", crashed {crashed}" if crashed else "")
+                         + ")")
+            cells.append(cell)
+        print(f"| {'none (nothing flagged)' if e == 'none' else e} | " + " | ".join(cells) + " |")
+    print()
+
+
 def fmt(v: float | None, spec: str = ".3g") -> str:
     return "—" if v is None else format(v, spec)
 
@@ -322,6 +348,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"({'also' if d.noise_on_stuck else 'not'} on stuck pixels), vignetting {d.vignetting:g}, stuck share "
                   f"{d.rates[1] / sum(d.rates):.2g}, ISO gain {d.iso_gain}\n")
             print_tables([r for r in singles_runs if r["convention"] == conv], effects)
+        if len(convs) > 1:
+            print("## All conventions: runs meeting every criterion\n")
+            print_summary(singles_runs, effects, convs)
     elif singles:
         print_tables(singles_runs, effects)
     if singles:
