@@ -75,6 +75,14 @@ class DefectCounts:
         """Defective sites per pixel at the last epoch (interior)."""
         return len(self.sites) / sp.window_area(self.window)
 
+    def site_rate(self) -> float:
+        """The defective sites of the last epoch (every kind, interior) per megapixel per year between the first
+        and last epoch: what a fraction of the sites, read off their pattern (Ripley's K), arrived at."""
+        t = self.times
+        if len(t) < 2 or t[-1] <= t[0]:
+            return 0.0
+        return float(len(self.sites) / (t[-1] - t[0]) / self.interior_mp)
+
     def cluster_excess(self) -> tuple[float, float]:
         """Thomas-cluster excess of Ripley's K at the last epoch: (A, σ) by minimum contrast."""
         if len(self.sites) < 10:

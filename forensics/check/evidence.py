@@ -54,6 +54,9 @@ class EffectQuestions:
     def site_intensity(self) -> float:
         return self.defects.site_intensity()
 
+    def site_rate(self) -> float:
+        return self.defects.site_rate()
+
     def cluster_excess(self) -> tuple[float, float]:
         return self.defects.cluster_excess()
 

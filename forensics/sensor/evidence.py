@@ -39,6 +39,10 @@ class Evidence(Protocol):
         """Defective sites per pixel at the last epoch."""
         ...
 
+    def site_rate(self) -> float:
+        """Defective sites of the last epoch (every kind) per megapixel per year of the observed span."""
+        ...
+
     def cluster_excess(self) -> tuple[float, float]:
         """Thomas-cluster excess (A, σ) of Ripley's K of the defect sites at the last epoch."""
         ...
