@@ -60,6 +60,9 @@ class EffectQuestions:
     def cluster_excess(self) -> tuple[float, float]:
         return self.defects.cluster_excess()
 
+    def co_arrival_excess(self) -> tuple[float, float]:
+        return self.defects.co_arrival_excess()
+
 
 class Evidence(EffectQuestions):
     """Measurements reduced for checking: detected defects, pixel data per catalogue, forward models."""

@@ -206,7 +206,9 @@ def spatial_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, dict[s
     info: dict[str, Any] = {}
     if len(ev.defects.sites) < 10:
         return None, info, rows
-    l_obs = ev.defects.ripley_l(ev.defects.sites)
+    stat = ev.defects.observed_spatial()  # Ripley's L at the radii, then the co-arrival pair counts
+    n_r = len(sp.DEFAULT_RADII)
+    l_obs = stat[:n_r]
     ce = sp.clark_evans(ev.defects.sites[:, 1], ev.defects.sites[:, 0], ev.window)
     info.update({"radii": sp.DEFAULT_RADII, "observed": l_obs})
     null = fitted.spatial_null
@@ -214,13 +216,19 @@ def spatial_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, dict[s
         rows.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
         return None, info, rows
     m0, s0, sims = null["mean"], null["sd"], null["sims"]
-    dev_obs = float(np.max(np.abs(l_obs - m0) / s0))
+    # one test over both parts: the largest standardised deviation, calibrated on the same statistic of the draws
+    dev_obs = float(np.max(np.abs(stat - m0) / s0))
     dev_sim = np.max(np.abs(sims - m0) / s0, axis=1)
     p = float((1 + np.sum(dev_sim >= dev_obs)) / (1 + len(dev_sim)))
-    info.update({"mean": m0, "lo": np.quantile(sims, 0.025, axis=0), "hi": np.quantile(sims, 0.975, axis=0),
-                 "min": sims.min(0), "max": sims.max(0)})
+    ls = sims[:, :n_r]
+    info.update({"mean": m0[:n_r], "lo": np.quantile(ls, 0.025, axis=0), "hi": np.quantile(ls, 0.975, axis=0),
+                 "min": ls.min(0), "max": ls.max(0)})
     rows.append(CheckRow("spatial: Clark–Evans ratio (Donnelly)", ce.ratio, 1.0, ce.z))
-    j = int(np.argmax(np.abs(l_obs - m0) / s0))
-    rows.append(CheckRow(f"spatial: Ripley L at r = {sp.DEFAULT_RADII[j]:g} px (largest deviation)",
-                         float(l_obs[j]), float(m0[j]), float((l_obs[j] - m0[j]) / s0[j])))
+    for part, label in ((slice(0, n_r), "Ripley L at r ="), (slice(n_r, len(stat)), "pairs arrived together within")):
+        z = (stat[part] - m0[part]) / s0[part]
+        if not len(z):
+            continue
+        j = int(np.argmax(np.abs(z)))
+        rows.append(CheckRow(f"spatial: {label} {sp.DEFAULT_RADII[j]:g} px (largest deviation)",
+                             float(stat[part][j]), float(m0[part][j]), float(z[j])))
     return p, info, rows

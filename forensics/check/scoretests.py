@@ -303,8 +303,7 @@ def score_spatial(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> l
     null = fitted.spatial_null
     if null is None:
         return out
-    l_obs = ev.defects.ripley_l(ev.defects.sites)
-    u_obs = (l_obs - null["mean"]) / null["sd"]
+    u_obs = (ev.defects.observed_spatial() - null["mean"]) / null["sd"]
     u_sim = (null["sims"] - null["mean"]) / null["sd"]
     for s in sigs:
         d = s.x / max(float(np.linalg.norm(s.x)), 1e-12)
@@ -313,6 +312,6 @@ def score_spatial(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> l
         zval = (t_obs - float(t_sim.mean())) / max(float(t_sim.std(ddof=1)), 1e-9)
         lm = zval * zval if zval > 0 else 0.0
         out.append(ChannelTest("spatial", lm, 1, len(ev.defects.sites),
-                               f"{s.name}: Ripley L moves the way this effect predicts, z {zval:+.3g} against "
+                               f"{s.name}: Ripley L and co-arrival pairs move the way this effect predicts, z {zval:+.3g} against "
                                f"{len(t_sim)} simulations of the fitted model"))
     return out

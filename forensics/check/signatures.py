@@ -143,7 +143,8 @@ class SignatureContext(EffectQuestions):
 
             def simulate() -> np.ndarray:
                 rng = self.ev.streams.stream(ARRIVAL_SIGNATURES)
-                return np.array([counts.ripley_l(counts.simulate([*arrivals, strong], rng)[1]) for _ in range(n_sim)])
+                return np.array([counts.spatial_statistic(*counts.simulate([*arrivals, strong], rng)[1:])
+                                 for _ in range(n_sim)])
 
             ls = self.ev.simulations(ARRIVAL_SIGNATURES, [*arrivals, strong], simulate)
             m0, s0 = fitted.spatial_null["mean"], fitted.spatial_null["sd"]

@@ -603,16 +603,29 @@ class Clusters(Effect):
         return {PARTIAL: n, STUCK: np.zeros_like(n)}
 
     def fit(self, evidence: Evidence) -> "Clusters":
-        """Thomas-process parameters by minimum contrast on Ripley's K of the detected sites.
+        """Thomas-process parameters from the pairs of sites that arrived together, else from Ripley's K.
 
-        For uniform arrivals plus Thomas clusters, K(r) = πr² + A·(1 − exp(−r²/4σ²)) with
-        A = f·m/λ (f: clustered fraction, m: mean detected cluster size, λ: site intensity).
-        K fixes f·m, and so does the counts' dispersion, so ``mean_size`` keeps its value unless
-        f would exceed one.  The cluster rate then follows from f and the observed arrival rate.
+        A cluster's members appear at once, so the pairs of sites that arrived at the same epoch within r of each
+        other, beyond chance, are the clusters' own pairs: Π·(1 − exp(−r²/4σ²)) with Π = clusters ×
+        E[N(N − 1)]/2 = clusters × (m·p·ι)²/2 for N ~ Poisson(m·p·ι) detected members (p: the share of
+        amplitudes above the threshold, ι: of offspring landing on the sensor).  That gives σ and the rate.
+
+        Where no pair arrived together beyond chance (clusters all older than the first epoch, one epoch), K of
+        the last epoch's sites: K(r) = πr² + A·(1 − exp(−r²/4σ²)) with A = f·m/λ (f: clustered fraction,
+        m: mean detected cluster size, λ: site intensity); the rate follows from f and the sites' arrival rate.
+        K (like the counts' dispersion) fixes f·m, so ``mean_size`` keeps its value unless f would exceed one.
         """
         amplitude = evidence.amplitude_max(PARTIAL, self.amplitude)
         excess, sigma = evidence.cluster_excess()
         p_detect = evidence.detect_fraction(PARTIAL, amplitude)
+        pair_rate, pair_sigma = evidence.co_arrival_excess()
+        if pair_rate > 0 and p_detect > 0:
+            # K's excess (when any) may still say the clusters are bigger than ``mean_size``
+            f_m = excess * evidence.site_intensity() if excess > 0 else 0.0
+            mean_size = max(self.mean_size, f_m / p_detect)
+            shaped = replace(self, amplitude=amplitude, spread=float(pair_sigma), mean_size=mean_size)
+            detected = mean_size * p_detect * shaped.inside_fraction(evidence.shape)
+            return replace(shaped, rate=float(pair_rate / (detected**2 / 2.0)))
         if excess <= 0 or p_detect <= 0:
             return replace(self, amplitude=amplitude, rate=0.0)
         f_m = excess * evidence.site_intensity()

@@ -47,6 +47,11 @@ class Evidence(Protocol):
         """Thomas-cluster excess (A, σ) of Ripley's K of the defect sites at the last epoch."""
         ...
 
+    def co_arrival_excess(self) -> tuple[float, float]:
+        """Pairs of sites that arrived at the same epoch, close together, beyond chance: Thomas fit (Π, σ) with Π
+        per megapixel per year (every such pair of a cluster's detected members counts once)."""
+        ...
+
 
 class ChannelSignature(Protocol):
     """How one parameter of an effect moves one channel's statistics (see :class:`forensics.check.Signature`)."""

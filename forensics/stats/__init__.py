@@ -25,8 +25,8 @@ __getattr__, __dir__, __all__ = _lazy.attach(
             "roc",
         ],
         "spatial": [
-            "ClarkEvans", "clark_evans", "fit_thomas_excess", "ripley_k", "ripley_l", "thomas_excess",
-            "window_area",
+            "ClarkEvans", "clark_evans", "co_arrival_pairs", "fit_pair_excess", "fit_thomas_excess",
+            "lattice_pair_fraction", "ripley_k", "ripley_l", "thomas_excess", "window_area",
         ],
     },
 )
