@@ -18,6 +18,7 @@ import forensics.stats.spatial as sp
 from forensics.check.detection import Detection
 from forensics.check.measurements import Measurements
 from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
+from forensics.sensor.evidence import PairExcess
 from forensics.sensor.model import Device, Effect, SensorModel
 from forensics.stats.counts import poisson_deviance
 
@@ -105,13 +106,14 @@ class DefectCounts:
             return 0.0
         return float(len(self.sites) / (t[-1] - t[0]) / self.interior_mp)
 
-    def co_arrival_excess(self) -> tuple[float, float]:
+    def co_arrival_excess(self) -> PairExcess:
         """Pairs of sites that arrived at the same epoch after the first, within r of each other, beyond those of
-        sites placed independently (exact on the pixel grid): Thomas fit (Π, σ), Π per megapixel per year."""
+        sites placed independently (exact on the pixel grid): a Thomas fit, per megapixel per year."""
         t = self.times
         new = self.site_epochs > 0
         if new.sum() < 2 or len(t) < 2 or t[-1] <= t[0]:
-            return 0.0, 1.0
+            return PairExcess(0.0, 1.0, 0.0, 0.0)
+        exposure = float((t[-1] - t[0]) * self.interior_mp)
         radii = CLUSTER_RADII
         pts, epochs = self.sites[new], self.site_epochs[new]
         observed = sp.co_arrival_pairs(pts[:, 1], pts[:, 0], epochs, radii)
@@ -119,8 +121,9 @@ class DefectCounts:
         x0, y0, x1, y1 = self.window
         chance = float(np.sum(per_epoch * (per_epoch - 1) / 2)) * sp.lattice_pair_fraction(int(x1 - x0), int(y1 - y0),
                                                                                           radii)
-        pairs, sigma = sp.fit_pair_excess(radii, observed - chance, observed)
-        return float(pairs / (t[-1] - t[0]) / self.interior_mp), sigma
+        pairs, sigma = sp.fit_pair_excess(radii, observed - chance, chance)
+        near = float(np.interp(min(3.0 * sigma, radii[-1]), radii, chance))  # where the clusters' pairs lie
+        return PairExcess(float(pairs / exposure), sigma, near, exposure)
 
     def cluster_excess(self) -> tuple[float, float]:
         """Thomas-cluster excess of Ripley's K at the last epoch: (A, σ) by minimum contrast."""

@@ -30,6 +30,7 @@ from forensics.check.prediction import Predictor
 from forensics.check.singles import single_frames, singles_note, without_hits
 from forensics.check.streams import Streams
 from forensics.sensor.catalogue import DefectCatalogue
+from forensics.sensor.evidence import PairExcess
 from forensics.sensor.model import Device, Effect
 
 #: z of the look-back that dates the pixel classes' onsets.
@@ -60,7 +61,7 @@ class EffectQuestions:
     def cluster_excess(self) -> tuple[float, float]:
         return self.defects.cluster_excess()
 
-    def co_arrival_excess(self) -> tuple[float, float]:
+    def co_arrival_excess(self) -> PairExcess:
         return self.defects.co_arrival_excess()
 
 

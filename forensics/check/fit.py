@@ -296,8 +296,9 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
         m = np.maximum(base, 1e-9)
         params += estimates(arr, free, (jac / m) @ jac.T, converged)
     for e in arr:
+        errors = e.fit_errors(evidence)
         for n in e.self_fitted:
-            params.append(ParamEstimate(e.key, n, float(getattr(e, n)), None, unit(e, n)))
+            params.append(ParamEstimate(e.key, n, float(getattr(e, n)), errors.get(n), unit(e, n)))
     return ArrivalFit(arr, expected, [(arr[j].key, n) for j, n in free], jac, params)
 
 

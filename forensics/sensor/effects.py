@@ -618,14 +618,14 @@ class Clusters(Effect):
         amplitude = evidence.amplitude_max(PARTIAL, self.amplitude)
         excess, sigma = evidence.cluster_excess()
         p_detect = evidence.detect_fraction(PARTIAL, amplitude)
-        pair_rate, pair_sigma = evidence.co_arrival_excess()
-        if pair_rate > 0 and p_detect > 0:
+        pairs = evidence.co_arrival_excess()
+        if pairs.rate > 0 and p_detect > 0:
             # K's excess (when any) may still say the clusters are bigger than ``mean_size``
             f_m = excess * evidence.site_intensity() if excess > 0 else 0.0
             mean_size = max(self.mean_size, f_m / p_detect)
-            shaped = replace(self, amplitude=amplitude, spread=float(pair_sigma), mean_size=mean_size)
-            detected = mean_size * p_detect * shaped.inside_fraction(evidence.shape)
-            return replace(shaped, rate=float(pair_rate / (detected**2 / 2.0)))
+            shaped = replace(self, amplitude=amplitude, spread=float(pairs.sigma), mean_size=mean_size)
+            detected = shaped.detected_size(evidence)
+            return replace(shaped, rate=float(pairs.rate / (detected**2 / 2.0)))
         if excess <= 0 or p_detect <= 0:
             return replace(self, amplitude=amplitude, rate=0.0)
         f_m = excess * evidence.site_intensity()
@@ -643,6 +643,25 @@ class Clusters(Effect):
         shaped = replace(self, amplitude=amplitude, spread=float(sigma), mean_size=mean_size)
         return replace(shaped, rate=float(fraction * per_mp_year
                                           / (mean_size * p_detect * shaped.inside_fraction(evidence.shape))))
+
+    def detected_size(self, evidence: Evidence) -> float:
+        """Mean number of a cluster's members detected on the sensor: ``mean_size`` × the share of amplitudes
+        above the threshold × the share of offspring landing inside."""
+        p_detect = evidence.detect_fraction(PARTIAL, self.amplitude)
+        return self.mean_size * p_detect * self.inside_fraction(evidence.shape)
+
+    def fit_errors(self, evidence: Evidence) -> dict[str, float]:
+        """The rate's standard error where it was read off the pairs that arrived together
+        (:func:`forensics.stats.spatial.pair_excess_se`: the clusters' Poisson sizes dominate it)."""
+        from forensics.stats.spatial import pair_excess_se
+
+        pairs = evidence.co_arrival_excess()
+        lam = self.detected_size(evidence)
+        if pairs.rate <= 0 or pairs.exposure <= 0 or lam <= 0:
+            return {}
+        total = pairs.rate * pairs.exposure
+        se_total = pair_excess_se(total, lam, pairs.chance)
+        return {"rate": se_total / pairs.exposure / (lam * lam / 2.0)}
 
     def probe(self, evidence: Evidence) -> "Clusters":
         """Clusters of the default size and spread carrying a third of the observed arrivals."""

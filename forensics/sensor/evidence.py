@@ -7,12 +7,21 @@ sensor model does not depend on the checker (``forensics.sensor`` never imports 
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
 if TYPE_CHECKING:
     from forensics.sensor.model import Effect
+
+
+class PairExcess(NamedTuple):
+    """Pairs of defect sites that arrived at the same epoch close together, beyond chance (a Thomas fit)."""
+
+    rate: float  #: excess pairs per megapixel per year (0: none beyond chance)
+    sigma: float  #: their spread: each site's offset from its cluster's centre, px per axis
+    chance: float  #: the chance pairs subtracted within 3σ, whose Poisson noise the excess carries
+    exposure: float  #: megapixel-years observed (the interior × the span from the first to the last epoch)
 
 
 class Evidence(Protocol):
@@ -47,9 +56,9 @@ class Evidence(Protocol):
         """Thomas-cluster excess (A, σ) of Ripley's K of the defect sites at the last epoch."""
         ...
 
-    def co_arrival_excess(self) -> tuple[float, float]:
-        """Pairs of sites that arrived at the same epoch, close together, beyond chance: Thomas fit (Π, σ) with Π
-        per megapixel per year (every such pair of a cluster's detected members counts once)."""
+    def co_arrival_excess(self) -> PairExcess:
+        """Pairs of sites that arrived at the same epoch, close together, beyond chance (every such pair of a
+        cluster's detected members counts once)."""
         ...
 
 

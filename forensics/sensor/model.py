@@ -329,6 +329,11 @@ class Effect:
         """
         return self
 
+    def fit_errors(self, evidence: Evidence) -> dict[str, float]:
+        """Standard errors of the :attr:`self_fitted` parameters at the values :meth:`fit` returned, where the
+        effect's own estimator knows them (the check reports the others without an interval).  Default: none."""
+        return {}
+
     def signature(self, evidence: SignatureEvidence) -> list[ChannelSignature]:
         """How the predicted statistics change when this effect leaves its null values.
 

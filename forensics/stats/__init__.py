@@ -26,7 +26,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         ],
         "spatial": [
             "ClarkEvans", "clark_evans", "co_arrival_pairs", "fit_pair_excess", "fit_thomas_excess",
-            "lattice_pair_fraction", "ripley_k", "ripley_l", "thomas_excess", "window_area",
+            "lattice_pair_fraction", "pair_excess_se", "ripley_k", "ripley_l", "thomas_excess", "window_area",
         ],
     },
 )

@@ -128,12 +128,15 @@ def lattice_pair_fraction(width: int, height: int, radii: np.ndarray = DEFAULT_R
     return cum[np.searchsorted(dist[order], radii, side="right")] / (n * (n - 1.0))
 
 
-def fit_pair_excess(radii: np.ndarray, excess: np.ndarray, variance: np.ndarray) -> tuple[float, float]:
+def fit_pair_excess(radii: np.ndarray, excess: np.ndarray, chance: np.ndarray) -> tuple[float, float]:
     """Fit ``Π · (1 − exp(−r²/4σ²))`` — the pairs of Thomas clusters (offsets N(0, σ²) per axis) within r — to
-    counted excess pairs, each radius weighted by ``1/variance``.
+    counted excess pairs (cumulative in r) beside ``chance`` pairs expected within the same radii.
 
-    Π has a closed form at each σ (weighted least squares on one column); σ is found on a log grid from
-    0.3 to 30 px, then refined (a grid cannot stall on the flat loss of a weak excess).
+    The fit is made in the rings between consecutive radii (the cumulative counts share their pairs; the rings'
+    counts are independent), each weighted by its expected count: chance + the fitted excess, in two passes
+    (weights from the observed counts themselves would bias Π low).  At each σ, Π has a closed form (weighted
+    least squares on one column); σ is found on a log grid from 0.3 to 30 px, then refined (a grid cannot stall
+    on the flat loss of a weak excess).
 
     Returns
     -------
@@ -144,28 +147,56 @@ def fit_pair_excess(radii: np.ndarray, excess: np.ndarray, variance: np.ndarray)
     --------
     >>> r = DEFAULT_RADII
     >>> pi_, s = fit_pair_excess(r, 50 * (1 - np.exp(-r**2 / 4 / 2.0**2)), np.ones(len(r)))
-    >>> round(pi_, 2), round(s, 1)
+    >>> round(float(pi_), 2), round(s, 1)
     (50.0, 2.0)
     """
     radii = np.asarray(radii, float)
-    x = np.asarray(excess, float)
-    w = 1.0 / np.maximum(np.asarray(variance, float), 1.0)
+    x = np.diff(np.asarray(excess, float), prepend=0.0)
+    base = np.diff(np.asarray(chance, float), prepend=0.0)
 
-    def at(log_sigma: float) -> tuple[float, float]:
-        g = 1.0 - np.exp(-radii**2 / (4.0 * np.exp(2.0 * log_sigma)))
+    def ring(log_sigma: float) -> np.ndarray:
+        return np.diff(1.0 - np.exp(-radii**2 / (4.0 * np.exp(2.0 * log_sigma))), prepend=0.0)
+
+    def at(log_sigma: float, w: np.ndarray) -> tuple[float, float]:
+        g = ring(log_sigma)
         pi_ = max(float(np.sum(w * g * x) / max(np.sum(w * g * g), 1e-300)), 0.0)
         return pi_, float(np.sum(w * (x - pi_ * g) ** 2))
 
     grid = np.linspace(np.log(0.3), np.log(30.0), 121)
-    losses = [at(v)[1] for v in grid]
-    j = int(np.argmin(losses))
-    if at(grid[j])[0] <= 0:
-        return 0.0, 1.0
     step = grid[1] - grid[0]
-    fine = optimize.minimize_scalar(lambda v: at(v)[1], bounds=(grid[j] - step, grid[j] + step), method="bounded",
-                                    options={"xatol": 1e-6})
-    v = float(fine.x) if fine.fun <= losses[j] else float(grid[j])
-    return at(v)[0], float(np.exp(v))
+    w = 1.0 / np.maximum(base + np.maximum(x, 0.0), 1.0)
+    v = float(grid[0])
+    for _ in range(2):
+        losses = [at(u, w)[1] for u in grid]
+        j = int(np.argmin(losses))
+        if at(grid[j], w)[0] <= 0:
+            return 0.0, 1.0
+        fine = optimize.minimize_scalar(lambda u: at(u, w)[1], bounds=(grid[j] - step, grid[j] + step),
+                                        method="bounded", options={"xatol": 1e-6})
+        v = float(fine.x) if fine.fun <= losses[j] else float(grid[j])
+        w = 1.0 / np.maximum(base + at(v, w)[0] * ring(v), 1.0)
+    return at(v, w)[0], float(np.exp(v))
+
+
+def pair_excess_se(pairs: float, mean_members: float, chance: float) -> float:
+    """Standard error of a fitted pair excess Π (:func:`fit_pair_excess`) of Thomas clusters whose detected
+    members are Poisson with mean λ = ``mean_members``.
+
+    Π sums the clusters' own pairs N(N − 1)/2: with a Poisson number n = Π/(λ²/2) of clusters, its variance is
+    n·E[(N(N − 1)/2)²] = n·(λ⁴/4 + λ³ + λ²/2) — dominated by the clusters' sizes, not by their count.  The chance
+    pairs subtracted add their Poisson variance: ``chance``, their expected count within the largest radius
+    (where :func:`fit_pair_excess` reads Π).
+
+    Examples
+    --------
+    >>> round(pair_excess_se(400.0, 4.0, 0.0), 1)   # 50 clusters of 4: √(50 · (64 + 64 + 8))
+    82.5
+    """
+    if mean_members <= 0 or pairs <= 0:
+        return float(np.sqrt(max(chance, 0.0)))
+    lam = float(mean_members)
+    clusters = pairs / (lam * lam / 2.0)
+    return float(np.sqrt(clusters * (lam**4 / 4.0 + lam**3 + lam**2 / 2.0) + max(chance, 0.0)))
 
 
 @dataclass
