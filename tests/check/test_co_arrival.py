@@ -73,14 +73,15 @@ def test_the_pair_excess_of_thomas_clusters_is_recovered_with_its_interval_besid
     draws = np.array([draw_pair_excess(seed) for seed in range(200)])
     pi_, sigma, se, own = draws.T
     ratio = pi_ / own
-    # unbiased within 3 standard errors of the draws' own spread (measured 1.00 ± 0.01); σ measured 1.86 px (the
-    # pixel grid merges members that share a pixel, the closest pairs)
+    # unbiased within 3 standard errors of the draws' own spread (measured 0.992; against the expected Π 1.003);
+    # σ measured 1.96 px (the pixel grid merges the members that share a pixel, the closest pairs)
     assert abs(ratio.mean() - 1.0) <= 3 * ratio.std(ddof=1) / np.sqrt(ratio.size), ratio.mean()
     assert abs(np.median(sigma) - 2.0) <= 0.3, np.median(sigma)
     lam = 4.0 * Clusters(spread=2.0).inside_fraction((128, 128))
     expected = 40.0 * lam**2 / 2
     covered = np.mean(np.abs(pi_ - expected) <= 1.96 * se)
-    # 95 % nominal; 200 draws give a binomial sd of 1.5 %: 3 sd either side
+    # 95 % nominal, measured 93 % (the σ–Π trade-off of the fit adds ≈ 20 % to the variance, which the clusters'
+    # sizes dominate); 200 draws give a binomial sd of 1.5 %: 3 sd either side
     assert 0.95 - 0.046 <= covered <= 0.95 + 0.046, covered
 
 
