@@ -92,8 +92,19 @@ def pixel_gof(ev: Evidence, fitted: FittedModel) -> tuple[float, np.ndarray, lis
     df_within = np.maximum(npix_obs - k_local - 1, 0)
     ss_within = np.sum(zk**2, axis=0) - u**2
     use = (norm > 0) & (df_within > 0)
-    n_pix = int(use.sum())
     consistency = np.where(use, u, np.nan)
+    # A pixel whose constant offset lies beyond the Bonferroni bound for 1 % over all pixels is one the model
+    # itself predicts among the normal ones: a partially stuck pixel whose offset stays under the detection
+    # threshold of every single epoch (amplitudes run down to 0), which this statistic, pooling every condition,
+    # sees at 10–20 σ.  Three of them made the whole F-test fail on 14-bit data with shot noise (u² 359, 251, 88
+    # of 14,883 pixels: between/within 1.054, z 4.6; without them 1.008).  They are counted in a row of their
+    # own and left out of the F-test, whose null distribution this bound leaves all but unchanged (1 % of
+    # correct fits lose one pixel); a pattern spread over many pixels still moves the bulk.
+    n_use = int(use.sum())
+    bound = float(stats.norm.isf(0.005 / max(n_use, 1)))
+    lone = use & (np.abs(u) > bound)
+    use = use & ~lone
+    n_pix = int(use.sum())
     if n_pix > 10:
         between = float(np.mean(u[use] ** 2))
         within = float(ss_within[use].sum() / df_within[use].sum())
@@ -102,6 +113,8 @@ def pixel_gof(ev: Evidence, fitted: FittedModel) -> tuple[float, np.ndarray, lis
         p_b = float(stats.f.sf(ratio, n_pix, dfw))
         rows.append(CheckRow("pixel: per-pixel consistency (between / within)", ratio, 1.0,
                              (ratio - 1) / math.sqrt(2 / n_pix + 2 / dfw)))
+        rows.append(CheckRow(f"pixel: pixels with a constant offset beyond |z| {bound:.3g} (undetected defects; "
+                             "not in the consistency ratio)", float(lone.sum()), 0.01, None))
     else:
         p_b = 1.0
     return min(1.0, 2 * min(p_a, p_b)), consistency, rows
