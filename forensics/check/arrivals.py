@@ -61,6 +61,7 @@ class DefectCounts:
         interior = meas.interior
         self.area_fraction = float(interior.sum() / interior.size)
         self.interior_mp = interior.sum() / 1e6
+        self._pair_excess: PairExcess | None = None
 
     def epoch_of(self, onset: np.ndarray) -> np.ndarray:
         """The epoch at which a defect of this ``onset`` is first seen: the first epoch time ≥ the onset."""
@@ -108,7 +109,13 @@ class DefectCounts:
 
     def co_arrival_excess(self) -> PairExcess:
         """Pairs of sites that arrived at the same epoch after the first, within r of each other, beyond those of
-        sites placed independently (exact on the pixel grid): a Thomas fit, per megapixel per year."""
+        sites placed independently (exact on the pixel grid): a Thomas fit, per megapixel per year (computed once:
+        the sites are the data's)."""
+        if self._pair_excess is None:
+            self._pair_excess = self._fit_pair_excess()
+        return self._pair_excess
+
+    def _fit_pair_excess(self) -> PairExcess:
         t = self.times
         new = self.site_epochs > 0
         if new.sum() < 2 or len(t) < 2 or t[-1] <= t[0]:

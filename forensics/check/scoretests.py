@@ -312,6 +312,6 @@ def score_spatial(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> l
         zval = (t_obs - float(t_sim.mean())) / max(float(t_sim.std(ddof=1)), 1e-9)
         lm = zval * zval if zval > 0 else 0.0
         out.append(ChannelTest("spatial", lm, 1, len(ev.defects.sites),
-                               f"{s.name}: Ripley L and co-arrival pairs move the way this effect predicts, z {zval:+.3g} against "
-                               f"{len(t_sim)} simulations of the fitted model"))
+                               f"{s.name}: Ripley L and co-arrival pairs move the way this effect predicts, "
+                               f"z {zval:+.3g} against {len(t_sim)} simulations of the fitted model"))
     return out

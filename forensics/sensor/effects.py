@@ -31,6 +31,7 @@ from forensics.sensor.model import (
     register_effect,
 )
 from forensics.sensor.evidence import Evidence
+from forensics.stats.spatial import pair_excess_se
 
 
 # --------------------------------------------------------------------------- arrival helpers
@@ -653,8 +654,6 @@ class Clusters(Effect):
     def fit_errors(self, evidence: Evidence) -> dict[str, float]:
         """The rate's standard error where it was read off the pairs that arrived together
         (:func:`forensics.stats.spatial.pair_excess_se`: the clusters' Poisson sizes dominate it)."""
-        from forensics.stats.spatial import pair_excess_se
-
         pairs = evidence.co_arrival_excess()
         lam = self.detected_size(evidence)
         if pairs.rate <= 0 or pairs.exposure <= 0 or lam <= 0:
