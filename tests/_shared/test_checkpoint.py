@@ -225,8 +225,14 @@ def test_two_simulate_age_runs_into_one_output_one_is_refused(tmp_path):
         items = tmp_path / ".aged.partial" / ".items"
         while not any(items.glob("item-*.npz")) and first.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert first.poll() is None, first.stderr.read()
-        second = subprocess.run(list(map(str, command)), capture_output=True, text=True)
+        # the first run is held while the second tries (on a loaded machine it could otherwise finish in between,
+        # and the second would rightly find a finished output instead)
+        os.killpg(first.pid, signal.SIGSTOP)
+        try:
+            assert first.poll() is None, first.stderr.read()
+            second = subprocess.run(list(map(str, command)), capture_output=True, text=True)
+        finally:
+            os.killpg(first.pid, signal.SIGCONT)
         assert first.wait(timeout=120) == 0, first.stderr.read()
     finally:
         if first.poll() is None:
