@@ -17,7 +17,7 @@ import numpy as np
 import forensics.stats.spatial as sp
 from forensics.check.detection import Detection
 from forensics.check.measurements import Measurements
-from forensics.sensor.catalogue import PARTIAL, STUCK, DefectCatalogue
+from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.sensor.evidence import PairExcess
 from forensics.sensor.model import Device, Effect, SensorModel
 from forensics.stats.counts import poisson_deviance
@@ -25,10 +25,6 @@ from forensics.stats.counts import poisson_deviance
 
 #: Radii (px) at which clusters are fitted: the spatial channel's, and one more to see the excess level off
 CLUSTER_RADII = np.append(sp.DEFAULT_RADII, 12.0)
-
-
-def _unique_sites(cat: DefectCatalogue) -> np.ndarray:
-    return np.unique(np.column_stack([cat.y, cat.x]), axis=0) if len(cat) else np.zeros((0, 2), int)
 
 
 def _sites_with_epochs(rows: np.ndarray, cols: np.ndarray, epochs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,7 +53,8 @@ class DefectCounts:
         last = cat.at(times[-1]) if len(cat) else cat
         # (n, 2): row, column; and the epoch each site first appeared at (0: present at the first epoch)
         self.sites, self.site_epochs = _sites_with_epochs(last.y, last.x, self.epoch_of(last.onset))
-        self.first_sites = _unique_sites(cat.at(times[0]) if len(cat) else cat)
+        first = cat.at(times[0]) if len(cat) else cat
+        self.first_sites = _sites_with_epochs(first.y, first.x, np.zeros(len(first), int))[0]
         interior = meas.interior
         self.area_fraction = float(interior.sum() / interior.size)
         self.interior_mp = interior.sum() / 1e6
