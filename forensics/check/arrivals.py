@@ -17,11 +17,16 @@ import numpy as np
 import forensics.stats.spatial as sp
 from forensics.check.detection import Detection
 from forensics.check.measurements import Measurements
+from forensics.check.streams import PAIR_EXCESS_STREAM
 from forensics.sensor.catalogue import PARTIAL, STUCK
 from forensics.sensor.evidence import PairExcess
+from forensics._shared.rng import RngLike, keyed_generator
 from forensics.sensor.model import Device, Effect, SensorModel
 from forensics.stats.counts import poisson_deviance
 
+
+#: The pair excess's parametric bootstrap: its number of refits: the spread's standard error to ≈ 5 % (1/√(2·200)).
+PAIR_EXCESS_DRAWS = 200
 
 #: Radii (px) at which clusters are fitted: the spatial channel's, and one more to see the excess level off
 CLUSTER_RADII = np.append(sp.DEFAULT_RADII, 12.0)
@@ -37,10 +42,31 @@ def _sites_with_epochs(rows: np.ndarray, cols: np.ndarray, epochs: np.ndarray) -
     return sites, first
 
 
+def uniform_maximum(values: np.ndarray, floor: float = 0.0) -> tuple[float, float]:
+    """The upper end a of uniform values (the paper's a_ps = max d), and its standard error.
+
+    The estimate is (n + 1)/n times the largest of the n values, unbiased for U[0, a].  Detected amplitudes are
+    uniform between the detection threshold ``floor`` and a, where its standard deviation is (a − floor)/√(n(n + 2))
+    and its bias floor/n (smaller than that by √n: kept as it is, which the fits were validated with).  The
+    largest value's distribution is skewed, but (a − max)·n/(a − floor) tends to Exp(1), so estimate ± 1.96 se
+    covers 1 − e^{−2.96} ≈ 95 %.
+
+    Examples
+    --------
+    >>> a, se = uniform_maximum(np.linspace(1.0, 99.0, 98), floor=0.0)
+    >>> round(a, 2), round(se, 2)
+    (100.01, 1.01)
+    """
+    values = np.asarray(values, float)
+    n = values.size
+    estimate = float(values.max() * (n + 1) / n)
+    return estimate, float(max(estimate - floor, 0.0) / np.sqrt(n * (n + 2.0)))
+
+
 class DefectCounts:
     """Cumulative detected counts per kind at every epoch, the sites, and the arrival model's predictions."""
 
-    def __init__(self, meas: Measurements, detection: Detection, bit_depth: int):
+    def __init__(self, meas: Measurements, detection: Detection, bit_depth: int, rng: RngLike = 0):
         self.meas = meas
         self.shape = meas.shape
         self.window = meas.window
@@ -59,6 +85,8 @@ class DefectCounts:
         self.area_fraction = float(interior.sum() / interior.size)
         self.interior_mp = interior.sum() / 1e6
         self._pair_excess: PairExcess | None = None
+        self._rng = rng  #: the root of the check's streams (the pair excess's bootstrap draws from its own key)
+        self._pair_draws: dict[Any, Any] = {}  #: the pair excess's simulations, per argument
 
     def epoch_of(self, onset: np.ndarray) -> np.ndarray:
         """The epoch at which a defect of this ``onset`` is first seen: the first epoch time ≥ the onset."""
@@ -75,7 +103,21 @@ class DefectCounts:
             return float(self.meas.full_scale)
         if amp.size == 0:
             return float(default)
-        return float(amp.max() * (amp.size + 1) / amp.size)
+        return uniform_maximum(amp, self._floor(kind))[0]
+
+    def amplitude_se(self, kind: int) -> float | None:
+        """Standard error of :meth:`amplitude_max` (:func:`uniform_maximum`); None for stuck pixels (full scale,
+        no estimate) and where none was detected."""
+        cat = self.catalogue
+        amp = cat.amplitude[cat.kind == kind]
+        if kind == STUCK or amp.size == 0:
+            return None
+        return uniform_maximum(amp, self._floor(kind))[1]
+
+    def _floor(self, kind: int) -> float:
+        """The lowest amplitude detection lets through: the threshold, where there is one."""
+        tau = self.threshold.get(kind, -np.inf)
+        return float(tau) if np.isfinite(tau) and tau > 0 else 0.0
 
     def detect_fraction(self, kind: int, amplitude: float) -> float:
         """Fraction of uniform amplitudes in [0, amplitude] above the detection threshold."""
@@ -127,7 +169,30 @@ class DefectCounts:
                                                                                           radii)
         pairs, sigma = sp.fit_pair_excess(radii, observed - chance, chance)
         near = float(np.interp(min(3.0 * sigma, radii[-1]), radii, chance))  # where the clusters' pairs lie
-        return PairExcess(float(pairs / exposure), sigma, near, exposure)
+        return PairExcess(float(pairs / exposure), sigma, near, exposure, tuple(radii.tolist()),
+                          tuple(np.asarray(chance, float).tolist()))
+
+    def distinct_pair_share(self, mean_members: float) -> float:
+        """:func:`forensics.stats.spatial.distinct_pair_share` at the fitted spread, from the check's own stream
+        (the same value for the same argument)."""
+        key = ("share", round(float(mean_members), 12))
+        if key not in self._pair_draws:
+            self._pair_draws[key] = sp.distinct_pair_share(mean_members, self.co_arrival_excess().sigma,
+                                                           keyed_generator(self._rng, PAIR_EXCESS_STREAM, 1))
+        return self._pair_draws[key]
+
+    def co_arrival_draws(self, mean_members: float) -> np.ndarray:
+        """Parametric bootstrap of the pair excess (:func:`forensics.stats.spatial.pair_excess_draws`) for
+        clusters of ``mean_members`` detected members: ``(draws, 2)`` refits (Π*, σ*), Π in pairs (not per
+        megapixel-year).  From the check's own stream, afresh for every argument: the same draws whatever asked
+        before; kept per argument."""
+        fit = self.co_arrival_excess()
+        key = ("draws", round(float(mean_members), 12))
+        if key not in self._pair_draws:
+            self._pair_draws[key] = sp.pair_excess_draws(
+                np.asarray(fit.radii, float), fit.rate * fit.exposure, fit.sigma, mean_members,
+                np.asarray(fit.chance_within, float), keyed_generator(self._rng, PAIR_EXCESS_STREAM), PAIR_EXCESS_DRAWS)
+        return self._pair_draws[key]
 
     def cluster_excess(self) -> tuple[float, float]:
         """Thomas-cluster excess of Ripley's K at the last epoch: (A, σ) by minimum contrast."""

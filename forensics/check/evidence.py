@@ -49,6 +49,9 @@ class EffectQuestions:
     def detect_fraction(self, kind: int, amplitude: float) -> float:
         return self.defects.detect_fraction(kind, amplitude)
 
+    def amplitude_se(self, kind: int) -> float | None:
+        return self.defects.amplitude_se(kind)
+
     def arrival_rate(self, kind: int) -> float:
         return self.defects.arrival_rate(kind)
 
@@ -63,6 +66,12 @@ class EffectQuestions:
 
     def co_arrival_excess(self) -> PairExcess:
         return self.defects.co_arrival_excess()
+
+    def distinct_pair_share(self, mean_members: float) -> float:
+        return self.defects.distinct_pair_share(mean_members)
+
+    def co_arrival_draws(self, mean_members: float) -> np.ndarray:
+        return self.defects.co_arrival_draws(mean_members)
 
 
 class Evidence(EffectQuestions):
@@ -116,7 +125,8 @@ class Evidence(EffectQuestions):
         self.reference_conditions = sorted(common, key=str)
         by_epoch_ref = [[g.index for g in meas.groups if g.epoch == e and g.condition in common]
                         for e in range(len(times))]
-        self.defects = DefectCounts(seen, detect_defects(seen, by_epoch_ref, common_threshold=True), self.bit_depth)
+        self.defects = DefectCounts(seen, detect_defects(seen, by_epoch_ref, common_threshold=True), self.bit_depth,
+                                    rng=rng)
         self.predictor = Predictor(meas, self.rgroups)
         self._initial_pixels: PixelData | None = None
         self._simulations: dict[Any, Any] = {}

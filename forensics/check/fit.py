@@ -297,7 +297,10 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
         params += estimates(arr, free, (jac / m) @ jac.T, converged)
     for e in arr:
         errors = e.fit_errors(evidence)
+        held = e.held()
         for n in e.self_fitted:
+            if n in held:
+                continue  # stated as not identifiable with the effect's reason (identifiability.with_held)
             params.append(ParamEstimate(e.key, n, float(getattr(e, n)), errors.get(n), unit(e, n)))
     return ArrivalFit(arr, expected, [(arr[j].key, n) for j, n in free], jac, params)
 

@@ -20,6 +20,8 @@ NULL_SIMULATIONS = 1
 ARRIVAL_SIGNATURES = 7
 #: bootstrap of a pixel-local pattern's size (forensics.check.pixels.pattern_size)
 PATTERN_SIZE_STREAM = 11
+#: parametric bootstrap of the defects' pair excess (forensics.check.arrivals.DefectCounts.co_arrival_draws)
+PAIR_EXCESS_STREAM = 13
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,8 @@ class PairExcess(NamedTuple):
     sigma: float  #: their spread: each site's offset from its cluster's centre, px per axis
     chance: float  #: the chance pairs subtracted within 3σ, whose Poisson noise the excess carries
     exposure: float  #: megapixel-years observed (the interior × the span from the first to the last epoch)
+    radii: tuple[float, ...] = ()  #: the radii (px) the pairs were counted within
+    chance_within: tuple[float, ...] = ()  #: the chance pairs expected within each of them
 
 
 class Evidence(Protocol):
@@ -34,6 +36,11 @@ class Evidence(Protocol):
 
     def amplitude_max(self, kind: int, default: float) -> float:
         """Largest detected amplitude of defects of ``kind`` (unbiased), ``default`` when none was detected."""
+        ...
+
+    def amplitude_se(self, kind: int) -> float | None:
+        """Standard error of :meth:`amplitude_max` (None where it is no estimate: none detected, or stuck pixels,
+        whose maximum is the full scale)."""
         ...
 
     def detect_fraction(self, kind: int, amplitude: float) -> float:
@@ -59,6 +66,17 @@ class Evidence(Protocol):
     def co_arrival_excess(self) -> PairExcess:
         """Pairs of sites that arrived at the same epoch, close together, beyond chance (every such pair of a
         cluster's detected members counts once)."""
+        ...
+
+    def distinct_pair_share(self, mean_members: float) -> float:
+        """The share of the member pairs of clusters of ``mean_members`` detected members, at the fitted spread,
+        that are pairs of distinct sites on the pixel grid (:func:`forensics.stats.spatial.distinct_pair_share`)."""
+        ...
+
+    def co_arrival_draws(self, mean_members: float) -> np.ndarray:
+        """Refits ``(Π*, σ*)`` of the pair excess on counts simulated at the fitted excess for clusters of
+        ``mean_members`` detected members (a parametric bootstrap, :func:`forensics.stats.spatial.pair_excess_draws`;
+        the same draws for the same arguments)."""
         ...
 
 
