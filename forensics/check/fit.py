@@ -301,7 +301,8 @@ def fit_arrivals(evidence: Evidence, counts: DefectCounts, arrivals: list[Effect
         for n in e.self_fitted:
             if n in held:
                 continue  # stated as not identifiable with the effect's reason (identifiability.with_held)
-            params.append(ParamEstimate(e.key, n, float(getattr(e, n)), errors.get(n), unit(e, n)))
+            params.append(ParamEstimate(e.key, n, float(getattr(e, n)), errors.get(n), unit(e, n),
+                                        quadratic=n not in e.largest_value_params))
     return ArrivalFit(arr, expected, [(arr[j].key, n) for j, n in free], jac, params)
 
 

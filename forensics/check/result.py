@@ -34,6 +34,9 @@ class ParamEstimate:
     #: covariances with the other identifiable parameters fitted alongside (``effect.name`` → value), for
     #: quantities derived from several (a dark rate carried to another temperature with the fitted T_d)
     cov: dict[str, float] = dataclasses.field(default_factory=dict)
+    #: False where the estimate is no peak of a near-quadratic likelihood (the largest of several values: its error
+    #: is skewed), so that its standard error describes it but is no weight to pool it by across tiles
+    quadratic: bool = True
 
     @property
     def label(self) -> str:

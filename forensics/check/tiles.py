@@ -248,9 +248,11 @@ class TiledCheck:
 # ------------------------------------------------------------------------------------------------ combination
 def _tile_covariance(params: Sequence[ParamEstimate]) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(labels, values, covariance) of a tile's usable estimates: identifiable, settled, with a standard
-    error, off their bounds (at a bound the likelihood is not quadratic about the value)."""
+    error, off their bounds (at a bound the likelihood is not quadratic about the value), quadratic (not the
+    largest of several values, whose tile estimates are skewed: their heterogeneity Q would read the skew as a
+    parameter that differs across the sensor)."""
     use = [p for p in params if p.identifiable and p.converged and p.se is not None and p.se > 0 and not p.bound
-           and np.isfinite(p.value)]
+           and p.quadratic and np.isfinite(p.value)]
     labels = [p.label for p in use]
     cov = np.diag([float(p.se) ** 2 for p in use])
     for i, p in enumerate(use):

@@ -98,6 +98,7 @@ class Growth(Effect):
     fields = ("captured",)
     role = "base"
     self_fitted = ("amp_partial", "amp_stuck")
+    largest_value_params = ("amp_partial",)
 
     rate_partial: float = param(0.6659, "defects/MP/year", "arrival rate of partially stuck pixels (λ_ps)",
                                 free=True, bounds=(0.0, None))
@@ -598,6 +599,7 @@ class Clusters(Effect):
     fields = ("captured",)
 
     self_fitted = ("rate", "mean_size", "spread", "amplitude")
+    largest_value_params = ("amplitude",)
 
     rate: float = param(2.0, "clusters/MP/year", "arrival rate of clusters", null=0.0, free=True, bounds=(0.0, None))
     mean_size: float = param(4.0, "defects", "mean number of defects per cluster (Poisson)", free=True,
@@ -724,6 +726,7 @@ class AcceleratingGrowth(Effect):
     fields = ("captured",)
 
     self_fitted = ("amplitude",)
+    largest_value_params = ("amplitude",)
 
     theta: float = param(0.5, "defects/MP/year^β", "scale of the cumulative intensity", null=0.0, free=True,
                          bounds=(0.0, None))

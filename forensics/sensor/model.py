@@ -237,6 +237,9 @@ class Effect:
     role: ClassVar[str] = "candidate"
     #: Parameters that :meth:`fit` estimates itself (the generic fit leaves them alone).
     self_fitted: ClassVar[tuple[str, ...]] = ()
+    #: Those of :attr:`self_fitted` estimated as the largest of several values (an amplitude's upper end): their
+    #: standard error describes a skewed error, so the check does not pool them by their information.
+    largest_value_params: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def _meta(cls) -> dict[str, dict[str, Any]]:
