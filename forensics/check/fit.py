@@ -56,6 +56,9 @@ class FittedModel:
     #: per (condition, pixel), the variance the fitted pixel-local patterns' estimation noise adds to a held-out
     #: mean's prediction (what error² exceeds 1 by under the fitted model; None without such patterns)
     estimation_var: np.ndarray | None = None
+    #: the pixel channel's global parameters' derivative columns at the fit's last step, weighted and profiled
+    #: against the pixel-local patterns (:attr:`~forensics.check.pixelfit.PixelFit.global_columns`)
+    global_columns: list[np.ndarray] = field(default_factory=list)
 
     @property
     def not_converged(self) -> list[str]:
@@ -198,7 +201,8 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     params = [*arrival.params, *pix.params, *noise.params]  # the order of the stages
     return FittedModel(device, effects, pixels, pix.mu_a, mu_b, pix.nuisance, projector, params, patterns, expected,
                        arrival.free, arrival.jacobian, noise.predicted, noise.jacobian, spatial_null, sims,
-                       estimation_variance(pix.local, pix.nuisance, pix.local_var, patterns, effects))
+                       estimation_variance(pix.local, pix.nuisance, pix.local_var, patterns, effects),
+                       pix.global_columns)
 
 
 def estimation_variance(local: list, derivatives: list[np.ndarray], local_var: np.ndarray | None,

@@ -30,6 +30,9 @@ class PixelFit:
     pattern_weight: np.ndarray  #: the weights they were solved with (:attr:`PixelData.pattern_weight`, less misfits)
     params: list[ParamEstimate]  #: the global parameters' estimates
     chi_trace: list[float] = field(default_factory=list)  #: χ² at the end of every cycle (how the fit converged)
+    #: the global parameters' derivative columns at the last step, weighted (√w) and profiled against the
+    #: pixel-local patterns (float32; empty without global parameters)
+    global_columns: list[np.ndarray] = field(default_factory=list)
 
 
 def used_blocks(pat: Pattern) -> np.ndarray:
@@ -187,6 +190,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     X_local: list[np.ndarray] = []
     local_var = None
     H = cross = None
+    global_columns: list[np.ndarray] = []
     converged = False
     settled = False  # χ² moved by less than 0.1 % in a cycle, or rose: from then on the dropped pixels stay dropped
     for cycle in range(max_cycles):
@@ -217,8 +221,9 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
             mu = consistent(dev)
         # -- global parameters: profiled Gauss–Newton with step halving
         if glob:
-            effects, H, cross = _global_step(predict, consistent, refit_local, device, effects, glob, pats, local,
-                                             X_local, y, w, mu, centred, coupling, wp, latest["raw"], scored)
+            effects, H, cross, global_columns = _global_step(predict, consistent, refit_local, device, effects, glob,
+                                                             pats, local, X_local, y, w, mu, centred, coupling, wp,
+                                                             latest["raw"], scored)
             dev = on_device(device, effects)
         mu = consistent(dev)  # χ² of the patterns' own neighbour term: the objective every step decreases
         chi = float(np.sum(w * (y - mu) ** 2))
@@ -245,7 +250,8 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
     if glob:
         extra = _pattern_mean_covariance(H, cross, local, centred, local_var)
         params = estimates(effects, glob, H, converged and np.isfinite(chi), extra)
-    return PixelFit(effects, mu, X_local, local, local_var, wp, params, trace)
+    return PixelFit(effects, mu, X_local, local, local_var, wp, params, trace,
+                    [c.astype(np.float32) for c in global_columns])
 
 
 def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, raw: np.ndarray,
@@ -345,13 +351,15 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
                  coupling: tuple[list[np.ndarray], np.ndarray, dict] | None = None,
                  wp: np.ndarray | None = None,
                  raw: np.ndarray | None = None,
-                 members: np.ndarray | None = None) -> tuple[list[Effect], np.ndarray, np.ndarray | None]:
+                 members: np.ndarray | None = None
+                 ) -> tuple[list[Effect], np.ndarray, np.ndarray | None, list[np.ndarray]]:
     """One Gauss–Newton step of the global parameters (pixel-local patterns profiled out), halved until χ²
     does not increase (at most 8 times; else the old values stay).  χ² is that of the consistent prediction
     (``consistent``: the neighbours' pattern term of the trial's own patterns), so every accepted step lowers the
     objective itself; the derivatives hold the neighbour term fixed.  Returns the effects, the Gauss–Newton
     matrix (for standard errors) and the parameters' cross information with the random-effect patterns'
-    common modes (None without such patterns).  ``coupling``: the cycle's (Z, F) when the patterns are solved
+    common modes (None without such patterns), and the parameters' weighted, profiled derivative columns J (the
+    directions of the held-out score tests' projection: :func:`~forensics.check.scoretests.score_pixel`).  ``coupling``: the cycle's (Z, F) when the patterns are solved
     jointly (:func:`_coupling`): the parameters are then profiled against that joint solve (with the pattern
     weights ``wp``), else pixel by pixel.  ``raw``: the unclipped prediction of the current state, if known."""
     dev = on_device(device, effects)
@@ -383,7 +391,7 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         # every parameter on a bound or uninformative (step 0), or a move of under 1 % of a standard error: a
         # trial could gain nothing the data can tell, and its pattern refit may raise χ² by rounding — whereupon
         # 8 halvings of a null step were tried (12 of 18 trials of the hidden prnu dataset's --auto)
-        return effects, H, cross
+        return effects, H, cross, J
     old_vals = [p.values.copy() for _, p in pats]
     chi_old = float(np.sum(w * r * r))
 
@@ -413,8 +421,8 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         trial, chi_new = evaluate(fraction)
         if chi_new <= chi_old:
             if abs((chi_old - chi_new) - predicted) <= LINEAR_ENOUGH * abs(predicted):
-                return trial, H, cross
-            return _line_minimum(evaluate, fraction, chi_old, trial, chi_new), H, cross
+                return trial, H, cross, J
+            return _line_minimum(evaluate, fraction, chi_old, trial, chi_new), H, cross, J
         if attempt == 1:
             # two trials rose: is it the step, or the patterns' refit that every trial makes (a local Gauss–Newton
             # step that ignores how a defect's values reach its neighbours through their scene estimates)?  If
@@ -431,11 +439,11 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         while fraction**2 * move >= NEGLIGIBLE_MOVE:
             trial, chi_new = evaluate(fraction, refit=False)
             if chi_new <= chi_old:
-                return trial, H, cross
+                return trial, H, cross, J
             fraction /= 2
     for (_, p), v in zip(pats, old_vals):
         p.values[...] = v
-    return effects, H, cross
+    return effects, H, cross, J
 
 
 #: A global step (or what halving leaves of it) whose length², in standard errors (s·H·s), is below this — a
