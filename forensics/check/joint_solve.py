@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import sparse
 
-from forensics.check.local_solve import common_mode, common_mode_gram, dead_columns, normal_matrix, scaled_pinv
+from forensics.check.local_solve import (common_mode, common_mode_gram, dead_columns, normal_matrix, scaled_pinv,
+                                        shrink_local)
 from forensics.check.scene import SCENE_SIZE, kernel_columns, kernel_estimate, kernel_transpose
 
 #: Conjugate gradients stop when the preconditioned residual's squared norm fell by this factor: the step is
@@ -388,3 +389,78 @@ def _preconditioner(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, wei
                     A[..., j, i] = A[..., i, j]
     inv, _ = scaled_pinv(A)
     return inv
+
+
+def coupled_shrink(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weight: np.ndarray, coef: np.ndarray,
+                   precision: np.ndarray, residual: np.ndarray | None = None, tol: float = 1e-12,
+                   max_iter: int = 4 * MAX_ITERATIONS) -> np.ndarray:
+    """:func:`~forensics.check.local_solve.shrink_local` with the neighbours' scene term: least-squares values
+    ``coef`` (k, H, W) moved to the mixed-model solution β = (A + P)⁻¹·A·β̂, A the *coupled* normal operator of
+    :func:`coupled_step` (each pixel's own frames and what its values do to its neighbours' scene estimates),
+    P = diag(``precision``) (1/τ² of a random effect, 0 for a fixed one, ``inf`` to fix it at 0).  Values
+    without information of their own keep β̂ (fixed effects) or go to 0 (random ones), as there.
+
+    Why: an additive pattern's smooth modes are what the scene estimates absorb — on them (I − K) is nearly 0,
+    and only the dark frames speak.  Per pixel the information looks like the light frames' and the dark
+    frames' together, so the local shrinkage leaves the smooth modes' noise almost whole; where the dark
+    frames say little (8-bit frames at a black level of 0 DN, most dark means censored) that noise is most of
+    the fitted values' error, and the held-out half's prediction, which carries it, shares it with the first
+    half's residuals (a pattern "in both halves" that is the fit's own error).  Solved with the coupling, each
+    mode is shrunk by its own information.  Conjugate gradients on the free values, preconditioned by each
+    pixel's own block plus P, until the preconditioned residual's squared norm fell by ``tol`` (10⁻¹²: a
+    residual of 10⁻⁶ of the right-hand side's, well below the values' own noise)."""
+    k = len(X)
+    prec = np.asarray(precision, float)
+    coupled = _coupled_frames(Z, F)
+    if not coupled:
+        return shrink_local(weight, X, coef, prec)
+    own = normal_matrix(X, weight)
+    pinned = np.moveaxis(dead_columns(own) | np.isinf(prec), -1, 0)  # (k, H, W)
+    beta = np.asarray(coef, float)
+    fixed = np.where(pinned & (prec == 0)[:, None, None], beta, 0.0)
+    free = ~pinned
+    finite = np.where(np.isfinite(prec), prec, 0.0)[:, None, None]
+    blocks = operator_blocks(X, Z, F, weight, coupled, own.copy())
+    aug = own.copy()
+    aug[..., np.arange(k), np.arange(k)] += finite[:, 0, 0]
+    inv = _preconditioner(X, Z, F, weight, coupled, kernel_transpose, aug)
+
+    def apply(d: np.ndarray) -> np.ndarray:
+        return free * (blocks.apply(free * d) + finite * d)
+
+    def precondition(g: np.ndarray) -> np.ndarray:
+        return free * np.moveaxis(np.einsum("...ij,...j->...i", inv, np.moveaxis(free * g, 0, -1)), -1, 0)
+
+    # the right-hand side A·(β̂ − pinned values) + Jᵀ·W·r, on the free values: Henderson's equations hold at any
+    # β̂, not only at the least-squares point — the fit's conjugate gradients stop at a relative tolerance, and
+    # the modes the data hardly determine (the smooth ones) are the last to converge and the first left behind
+    g = blocks.apply(beta - fixed)
+    if residual is not None:
+        v = np.where(weight > 0, weight * np.where(weight > 0, residual, 0.0), 0.0)
+        g += np.stack([np.einsum("r...,r...->...", x, v) for x in X])
+        for r in coupled:
+            back = kernel_transpose(F[r] * v[r])
+            for j, zj in enumerate(Z):
+                g[j] += zj[r] * back
+    g = free * g
+    x = precondition(g)
+    r = g - apply(x)
+    z = precondition(r)
+    rz = float(np.sum(r * z))
+    rz0 = float(np.sum(g * precondition(g)))
+    p = z.copy()
+    for _ in range(max_iter):
+        if rz <= tol * rz0:
+            break
+        q = apply(p)
+        pq = float(np.sum(p * q))
+        if pq <= 0.0:
+            break
+        alpha = rz / pq
+        x += alpha * p
+        r -= alpha * q
+        z = precondition(r)
+        rz_new = float(np.sum(r * z))
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return free * x + fixed

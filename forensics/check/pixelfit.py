@@ -33,6 +33,9 @@ class PixelFit:
     #: the global parameters' derivative columns at the last step, weighted (√w) and profiled against the
     #: pixel-local patterns (float32; empty without global parameters)
     global_columns: list[np.ndarray] = field(default_factory=list)
+    #: the last cycle's neighbour coupling of the pixel-local patterns, (Z, F) of
+    #: :func:`~forensics.check.joint_solve.coupled_step` (None without dark frames)
+    coupling: tuple[list[np.ndarray], np.ndarray] | None = None
 
 
 def used_blocks(pat: Pattern) -> np.ndarray:
@@ -251,7 +254,7 @@ def fit_pixels(ev: Evidence, pixels: PixelData, device: Device, effects: Sequenc
         extra = _pattern_mean_covariance(H, cross, local, centred, local_var)
         params = estimates(effects, glob, H, converged and np.isfinite(chi), extra)
     return PixelFit(effects, mu, X_local, local, local_var, wp, params, trace,
-                    [c.astype(np.float32) for c in global_columns])
+                    [c.astype(np.float32) for c in global_columns], None if coupling is None else coupling[:2])
 
 
 def _coupling(predictor, pixels: PixelData, dev: Device, predict, local: list, raw: np.ndarray,
