@@ -180,8 +180,11 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     patterns = with_sizes(ev, pixels, patterns, pix.local, effects, pix.nuisance)
     # (the near-bound variance bins' latent spread keeps the values shrunk pixel by pixel: the coupled shrinkage's
     # are the best predictions, but their spread is under the pattern's — 8-bit DSNU: input noise flagged, ΔBIC 15)
-    spread_values = shrink_random_effects(pix.pattern_weight, pix.local, pix.nuisance, patterns, effects,
-                                          pix.coupling, ev.meas.mean_a - pix.mu_a)
+    # the shrinkage weighs each mean by what it says about the values: the slope of the mean the data show (near
+    # 0 DN the truncated mean of the readouts that never touched it: 0.15 of the latent mean's at 8 bits, σ 0.7 DN)
+    slope = censored_slope(ev.predictor, on_device(device, effects), pixels)
+    spread_values = shrink_random_effects(pix.pattern_weight, pix.local, [x * slope for x in pix.nuisance], patterns,
+                                          effects, pix.coupling, ev.meas.mean_a - pix.mu_a)
     # ---------------------------------------------------------------- variance
     for i in n_idx:
         effects[i] = bespoke_fit(effects[i], ev)
@@ -423,15 +426,20 @@ def shrink_random_effects(weight: np.ndarray, local: list, derivatives: list[np.
     falls.  Where the pattern is strong the prior is weak against the data and nothing changes.  A pattern
     fitted to nothing (τ² = 0) is set to 0.
 
-    ``coupling``: the fit's neighbour coupling (Z, F) where dark frames make the scene estimates' term matter.
-    An additive pattern (Z ≠ 0) is then shrunk with it (:func:`~forensics.check.joint_solve.coupled_shrink`):
-    its smooth modes, which the scene estimates absorb in the light frames, carry the dark frames' information
-    only, and the per-pixel estimation variance understates their noise — so its prior τ is the pattern's size
-    as the frames show it (:attr:`PatternEstimate.size`, the split-half cross-product, free of that noise) where
-    measured.  8-bit DSNU (σ_o 0.19 DN, most dark means censored at 0 DN): the fitted values' rms less the local
-    noise read 0.31 DN, the size 0.195 ± 0.002; the values' error against the truth fell from 0.26 DN (local
-    shrinkage) to 0.16 DN (seed 4), though prnu stays flagged after `dsnu` (ΔBIC 14.7 → 13.5; branch note in
-    RESULTS_check.md).  Returns, where the coupling was used, the values the pixel-by-pixel shrinkage gives
+    ``derivatives`` are the slopes of the means the data show (near 0 DN, the truncated means of the readouts that
+    never touched it, whose slope is a fraction of the latent mean's: :func:`censored_slope`) — what each mean
+    says about the values.  ``coupling``: the fit's neighbour coupling (Z, F) where dark frames make the scene
+    estimates' term matter.  An additive pattern (Z ≠ 0) is then shrunk with it
+    (:func:`~forensics.check.joint_solve.coupled_shrink`): its smooth modes, which the scene estimates absorb in
+    the light frames, carry the dark frames' information only — so its prior τ is the pattern's size as the
+    frames show it (:attr:`PatternEstimate.size`, the split-half cross-product), where measured, not the values'
+    rms less the per-pixel noise, which misses the smooth modes' noise.  8-bit DSNU (σ_o 0.19 DN, black level
+    0 DN, most dark means censored; seed 4): the values' error against the truth 0.26 DN shrunk pixel by pixel
+    with the latent slopes, 0.16 DN coupled, 0.13 DN coupled with the censored slopes (0.15 at the kept dark
+    means, which the latent slope of 1 read as 16 units of information per pixel where there are ≈ 0.4); the
+    smooth error they left in both halves' light-frame predictions had flagged prnu after `dsnu` (ΔBIC 14.7;
+    with both corrections nothing is flagged).  Returns, where the coupling was used, the values the
+    pixel-by-pixel shrinkage gives
     (k, H, W), else None.
     """
     if not local or not any(p.random_effect for _, p in local):
@@ -460,6 +468,14 @@ def shrink_random_effects(weight: np.ndarray, local: list, derivatives: list[np.
         m = p.blocks >= 0
         p.values[p.blocks[m]] = shrunk[j][m].astype(p.values.dtype)
     return local_only if coupled else None
+
+
+def censored_slope(predictor, device: Device, pixels, step: float = 1e-3) -> np.ndarray:
+    """(R, H, W): the slope of the mean readout the data show (:meth:`Predictor.censor`) by the latent mean, at the
+    fitted model — 1 away from the bounds, under 1 where the means kept are truncated (the pixels that never
+    touched 0 or full scale).  The pixel fit's derivatives are the latent mean's."""
+    raw = predictor.predict(device, pixels, "a", clip=False)
+    return (predictor.censor(device, raw + step) - predictor.censor(device, raw)) / step
 
 
 def with_local_values(device: Device, local: list, effects: list[Effect], coef: np.ndarray | None) -> Device:
