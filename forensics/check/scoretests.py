@@ -23,7 +23,6 @@ from forensics.check.fit import FittedModel
 from forensics.check.pixels import pattern_size
 from forensics.check.result import ChannelTest
 from forensics.check.signatures import Signature
-from forensics.sensor.catalogue import PARTIAL, STUCK
 
 #: Side of the square tiles over which the split-half statistic's variance is measured: much larger than the
 #: correlation length of demosaiced, JPEG-compressed noise (a few pixels), small enough for ~1000 tiles at 512².
@@ -270,61 +269,32 @@ def score_variance(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> 
                         f"{', '.join(s.name for s in sigs)}: score LM {lm:.4g} on {len(e)} binned variances")]
 
 
-def count_dispersion(fitted: FittedModel, n_per_kind: int) -> np.ndarray:
-    """Per count increment, the fitted arrival model's own variance over its mean (≥ 1): 1 for Poisson arrivals,
-    more where defects arrive in batches (clusters: a cluster of N detected members adds N at once, variance
-    λ(1 + λ) per cluster).  One factor per kind (partially stuck, stuck), pooled over its increments, from the
-    model's Monte-Carlo draws (:meth:`~forensics.check.arrivals.DefectCounts.simulate_null`); 1 without them and
-    where no fitted effect arrives in batches (:attr:`~forensics.sensor.model.Effect.batch_arrivals`: the draws'
-    noise alone would otherwise lift every Poisson model's factor a few per cent above 1).
-
-    Why: the score tests weight each increment by its variance.  Taken as the Poisson mean where clusters are in
-    the model, the clusters' batches inflate every arrival test, and the quasi-Poisson factor estimated from the
-    data's few increments (18 on ten epochs) then took the power of the rest: accelerating growth beside clusters
-    read z 4.75 at a dispersion of 3.1 and was never added."""
-    counts = fitted.sims.get("counts") if fitted.sims else None
-    out = np.ones(2 * n_per_kind)
-    if not counts or not any(e.batch_arrivals for e in fitted.arrival_effects()):
-        return out
-    for j, k in enumerate((PARTIAL, STUCK)):
-        draws = np.diff(np.asarray(counts[k], float), axis=1)
-        mean = float(np.sum(draws.mean(axis=0)))
-        if draws.shape[0] >= 2 and mean > 0:
-            out[j * n_per_kind:(j + 1) * n_per_kind] = max(1.0, float(np.sum(draws.var(axis=0, ddof=1))) / mean)
-    return out
-
-
 def score_growth(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> list[ChannelTest]:
     out = []
     if len(ev.times) < 3:
         return out
     obs, mu = ev.defects.increments(fitted.expected)
     mu = np.maximum(mu, 1e-9)
-    disp = count_dispersion(fitted, len(ev.times) - 1)
-    v = mu * disp  # the fitted model's variance of each increment
     M = fitted.growth_jac
     for s in sigs:
         x = s.x.copy()
         if M is not None and len(M):
-            coef = np.linalg.lstsq((M / v) @ M.T, (M / v) @ x, rcond=None)[0]
+            coef = np.linalg.lstsq((M / mu) @ M.T, (M / mu) @ x, rcond=None)[0]
             x = x - coef @ M
-        info = float(np.sum(x * x / v))
-        raw = float(np.sum(s.x * s.x / v))
+        info = float(np.sum(x * x / mu))
+        raw = float(np.sum(s.x * s.x / mu))
         if raw <= 0 or info <= 1e-9 * raw:
             continue
-        u = float(np.sum(x * (obs - mu) / v))
+        u = float(np.sum(x * (obs - mu) / mu))
         mu_alt = np.maximum(mu + x * (u / info), 1e-9)  # one Fisher-scoring step towards the alternative
-        pearson_alt = float(np.sum((obs - mu_alt) ** 2 / (mu_alt * disp)))
+        pearson_alt = float(np.sum((obs - mu_alt) ** 2 / mu_alt))
         df_alt = max(len(obs) - (0 if M is None else M.shape[0]) - 1, 1)
-        # quasi-likelihood dispersion beyond the model's own, applied only when the counts are clearly more
-        # dispersed than the model says (pre-test at 1 %)
+        # quasi-Poisson dispersion, applied only when the counts are clearly over-dispersed (pre-test at 1 %)
         phi = pearson_alt / df_alt if pearson_alt > stats.chi2.ppf(0.99, df_alt) else 1.0
         lm = u * u / info / phi
-        model_disp = float(np.max(disp))
-        shown = f"dispersion {phi:.2g}" + (f" beyond the model's {model_disp:.2g}" if model_disp > 1.0 else "")
         out.append(ChannelTest("growth", lm, 1, int(max(obs.sum(), 1)),
                                f"{s.name}: Poisson score z {u / math.sqrt(info * phi):+.3g} on {len(obs)} count "
-                               f"increments ({shown})"))
+                               f"increments (dispersion {phi:.2g})"))
     return out
 
 

@@ -600,7 +600,6 @@ class Clusters(Effect):
 
     self_fitted = ("rate", "mean_size", "spread", "amplitude")
     largest_value_params = ("amplitude",)
-    batch_arrivals = True
 
     rate: float = param(2.0, "clusters/MP/year", "arrival rate of clusters", null=0.0, free=True, bounds=(0.0, None))
     mean_size: float = param(4.0, "defects", "mean number of defects per cluster (Poisson)", free=True,

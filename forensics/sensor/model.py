@@ -240,9 +240,6 @@ class Effect:
     #: Those of :attr:`self_fitted` estimated as the largest of several values (an amplitude's upper end): their
     #: standard error describes a skewed error, so the check does not pool them by their information.
     largest_value_params: ClassVar[tuple[str, ...]] = ()
-    #: An arrival effect whose defects come in batches (several at one time), so that the counts vary more than a
-    #: Poisson law's: the check's count tests then take their variance from the model's own draws.
-    batch_arrivals: ClassVar[bool] = False
 
     @classmethod
     def _meta(cls) -> dict[str, dict[str, Any]]:
