@@ -214,6 +214,16 @@ def format_tiles(tiled: Any) -> str:
         value = f"{_g(p.size, '.4g')} ± {_g(p.size_se, '.2g')}"
         lines.append(f"  {p.effect + '.' + p.name + ' (size)':<32} {value:>24}   {p.tiles:>5} {_g(p.spread, '9.2g')} "
                      f"{_p(p.p_same):>9}")
+    if tiled.uncombined:
+        lines.append("  not combined (the tiles' values: median [smallest, largest]):")
+        for u in tiled.uncombined:
+            if u.median is None:
+                spread = ""
+            elif _g(u.low, '.4g') == _g(u.high, '.4g'):  # (every tile at the same value, to the digits shown)
+                spread = f"{_g(u.median, '.4g')} {u.unit}".rstrip()
+            else:
+                spread = f"{_g(u.median, '.4g')} [{_g(u.low, '.4g')}, {_g(u.high, '.4g')}] {u.unit}".rstrip()
+            lines.append(f"    {u.label:<30} {spread:>30}   {u.tiles:>5} tiles: {u.reason}")
     if tiled.joint_p_same is not None:
         lines.append(f"  all parameters jointly: Q = {_g(tiled.joint_q)} on {tiled.joint_df} df, p {_p(tiled.joint_p_same)}")
     e = tiled.error

@@ -56,7 +56,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "scene": ["KERNEL", "KERNEL_VAR", "loo_quadratic_kernel", "scene_estimate"],
         "select": ["Attempt", "SelectionResult", "Step", "check_auto", "forward_select"],
         "structure": ["residual_structure"],
-        "tiles": ["TiledCheck", "TiledParam", "check_tiles", "combine", "tile_grid"],
+        "tiles": ["TiledCheck", "TiledParam", "UncombinedParam", "check_tiles", "combine", "tile_grid"],
         "signatures": ["Signature"],
         "singles": ["SingleFrames", "single_frames"],
     },

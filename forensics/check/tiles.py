@@ -165,6 +165,28 @@ class TiledParam:
 
 
 @dataclass(frozen=True)
+class UncombinedParam:
+    """A global parameter the tiles report but that is not combined by information, why, and the tiles' values —
+    so that a tiled check states every parameter a whole-frame check would."""
+
+    effect: str
+    name: str
+    unit: str
+    reason: str  #: why it is not pooled (the most common reason over the tiles), e.g. held with the effect's note
+    tiles: int  #: tiles that report it
+    median: float | None  #: the tiles' settled, finite values: median, smallest and largest (None: no such value)
+    low: float | None
+    high: float | None
+
+    @property
+    def label(self) -> str:
+        return f"{self.effect}.{self.name}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "label": self.label}
+
+
+@dataclass(frozen=True)
 class TiledPattern:
     """A random-effect pattern's size (its standard deviation as the frames show it, e.g. PRNU's or the DSNU's)
     combined over the tiles by inverse variance — every tile measures the same sensor-wide spread — with the
@@ -220,6 +242,8 @@ class TiledCheck:
     candidates: list[CombinedCandidate]
     warnings: list[str] = field(default_factory=list)
     patterns: list[TiledPattern] = field(default_factory=list)
+    #: the parameters the tiles report that are not combined (held, on a bound, the largest of several values…)
+    uncombined: list[UncombinedParam] = field(default_factory=list)
 
     @property
     def flagged(self) -> list[str]:
@@ -233,6 +257,7 @@ class TiledCheck:
     def to_dict(self) -> dict[str, Any]:
         return {"shape": list(self.shape), "tile_size": self.size, "effects": self.effects,
                 "params": [p.to_dict() for p in self.params],
+                "uncombined": [p.to_dict() for p in self.uncombined],
                 "patterns": [p.to_dict() for p in self.patterns],
                 "heterogeneity": {"q": self.joint_q, "df": self.joint_df, "p_same": self.joint_p_same},
                 "error": self.error, "gof": self.gof, "candidates": [c.to_dict() for c in self.candidates],
@@ -261,6 +286,51 @@ def _tile_covariance(params: Sequence[ParamEstimate]) -> tuple[list[str], np.nda
                 cov[i, j] = p.cov[q.label]
     cov = 0.5 * (cov + cov.T)
     return labels, np.array([p.value for p in use], float), cov
+
+
+def _not_pooled(p: ParamEstimate) -> str:
+    """Why a tile's estimate does not enter :func:`combine_params` (the order of :func:`_tile_covariance`'s
+    conditions)."""
+    if not p.converged:
+        return "did not converge"
+    if not p.identifiable:
+        return f"not identifiable ({p.note})" if p.note else "not identifiable"
+    if p.bound:
+        return f"at its {p.bound} bound"
+    if not p.quadratic:
+        return "the largest of several values (skewed: reported per tile, not pooled)"
+    return "no standard error"
+
+
+def uncombined_params(tiles: Sequence[TileResult], combined: Sequence[str]) -> list[UncombinedParam]:
+    """The global parameters of ``tiles`` whose labels are not in ``combined``, each with the most common reason
+    over the tiles and the spread of the tiles' settled values.
+
+    Examples
+    --------
+    >>> from forensics.check.result import ParamEstimate
+    >>> t = [TileResult(Tile((0, 0, 8, 8), (0, 0, 8, 8)), [],
+    ...                 [ParamEstimate("clusters", "amplitude", v, 9.0, "DN", quadratic=False)],
+    ...                 {}, {}, None, {}, [], [], []) for v in (280.0, 300.0, 310.0)]
+    >>> u = uncombined_params(t, [])[0]
+    >>> u.label, u.tiles, u.median, u.low, u.high, u.reason.split(" (")[0]
+    ('clusters.amplitude', 3, 300.0, 280.0, 310.0, 'the largest of several values')
+    """
+    seen: dict[str, list[ParamEstimate]] = {}
+    for t in tiles:
+        if t.excluded:
+            continue
+        for p in t.params:
+            if p.label not in combined:
+                seen.setdefault(p.label, []).append(p)
+    out = []
+    for ests in seen.values():
+        reasons = [_not_pooled(p) for p in ests]
+        reason = max(dict.fromkeys(reasons), key=reasons.count)  # the most common; ties: the first seen
+        vals = np.array([p.value for p in ests if p.converged and np.isfinite(p.value)], float)
+        stats_ = (float(np.median(vals)), float(vals.min()), float(vals.max())) if vals.size else (None, None, None)
+        out.append(UncombinedParam(ests[0].effect, ests[0].name, ests[0].unit, reason, len(ests), *stats_))
+    return out
 
 
 def _precision(cov: np.ndarray) -> np.ndarray:
@@ -504,7 +574,7 @@ def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> T
     effects = next((t.effects for t in tiles if t.effects), [])
     return TiledCheck((int(shape[0]), int(shape[1])), int(size), list(effects), tiles, params, q, df, p,
                       combine_errors(tiles), combine_gof(tiles), combine_candidates(tiles), warnings,
-                      combine_pattern_sizes(tiles))
+                      combine_pattern_sizes(tiles), uncombined_params(tiles, [x.estimate.label for x in params]))
 
 
 def _where(t: TileResult) -> str:

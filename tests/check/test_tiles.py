@@ -108,6 +108,31 @@ def test_tiles_agree_with_the_whole_frame_check(flat_rate):
     assert not tiled.flagged and not whole.flagged
 
 
+def test_every_parameter_is_reported_combined_or_with_the_reason_it_is_not(flat_rate):
+    """A tiled check states what a whole-frame check states: every global parameter is either combined over the
+    tiles or listed as not combined, with the whole-frame check's own reason (held, not separable, the largest of
+    several values) and the tiles' values — in the summary and in standard JSON."""
+    import json
+
+    from cli.model import format_tiles
+
+    _, tiled, whole = flat_rate
+    combined = {p.estimate.label for p in tiled.params}
+    listed = {u.label: u for u in tiled.uncombined}
+    assert not combined & set(listed)
+    assert combined | set(listed) == {p.label for p in whole.params}
+    for p in whole.params:
+        if p.label in listed:
+            reason = listed[p.label].reason
+            assert reason.startswith("not identifiable") == (not p.identifiable), p.label
+            assert reason.startswith("the largest") == (p.identifiable and not p.quadratic), p.label
+            assert listed[p.label].low <= listed[p.label].median <= listed[p.label].high
+    text = format_tiles(tiled)
+    assert "not combined" in text and all(label in text for label in listed)
+    out = json.loads(json.dumps(tiled.to_dict(), allow_nan=False))
+    assert {u["label"] for u in out["uncombined"]} == set(listed)
+
+
 def test_tiles_agree_with_each_other_when_the_rate_is_the_same_everywhere(flat_rate):
     _, tiled, _ = flat_rate
     assert len(tiled.tiles) == 6 and not tiled.failed
