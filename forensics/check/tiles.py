@@ -18,6 +18,9 @@ per worker — and the tiles' results are combined:
   parameter that differs).  A
   dark rate or a gain that changes across the sensor — amplifier glow in a corner, a gain gradient — fails it:
   a spatial effect the model lacks, which one small region cannot show.
+* **Parameters that are not combined** — held or not separable from another, on a bound, the largest of several
+  values (a defect amplitude, whose tile estimates are skewed) — are listed with the reason and the tiles'
+  values (:func:`uncombined_params`), so that the tiled check states every parameter one check would.
 * **Errors** pool the tiles' squared held-out errors by their numbers of held-out means; **goodness of fit**
   combines the tiles' independent p-values (Fisher's method); **candidates** sum their score (LM) statistics
   over the tiles, each χ² with its degrees of freedom under the model (Holm-adjusted across candidates, flagged
