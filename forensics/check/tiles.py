@@ -274,26 +274,8 @@ class TiledCheck:
 
 
 # ------------------------------------------------------------------------------------------------ combination
-def _tile_covariance(params: Sequence[ParamEstimate]) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(labels, values, covariance) of a tile's usable estimates: identifiable, settled, with a standard
-    error, off their bounds (at a bound the likelihood is not quadratic about the value), quadratic (not the
-    largest of several values, whose tile estimates are skewed: their heterogeneity Q would read the skew as a
-    parameter that differs across the sensor)."""
-    use = [p for p in params if p.identifiable and p.converged and p.se is not None and p.se > 0 and not p.bound
-           and p.quadratic and np.isfinite(p.value)]
-    labels = [p.label for p in use]
-    cov = np.diag([float(p.se) ** 2 for p in use])
-    for i, p in enumerate(use):
-        for j, q in enumerate(use):
-            if i != j and q.label in p.cov:
-                cov[i, j] = p.cov[q.label]
-    cov = 0.5 * (cov + cov.T)
-    return labels, np.array([p.value for p in use], float), cov
-
-
-def _not_pooled(p: ParamEstimate) -> str:
-    """Why a tile's estimate does not enter :func:`combine_params` (the order of :func:`_tile_covariance`'s
-    conditions)."""
+def _not_pooled(p: ParamEstimate) -> str | None:
+    """Why a tile's estimate does not enter :func:`combine_params` (:func:`_tile_covariance`), or None if it does."""
     if not p.converged:
         return "did not converge"
     if not p.identifiable:
@@ -302,7 +284,25 @@ def _not_pooled(p: ParamEstimate) -> str:
         return f"at its {p.bound} bound"
     if not p.quadratic:
         return "the largest of several values (skewed: reported per tile, not pooled)"
-    return "no standard error"
+    if p.se is None or not p.se > 0 or not np.isfinite(p.value):
+        return "no standard error"
+    return None
+
+
+def _tile_covariance(params: Sequence[ParamEstimate]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(labels, values, covariance) of a tile's usable estimates: identifiable, settled, with a standard
+    error, off their bounds (at a bound the likelihood is not quadratic about the value), quadratic (not the
+    largest of several values, whose tile estimates are skewed: their heterogeneity Q would read the skew as a
+    parameter that differs across the sensor)."""
+    use = [p for p in params if _not_pooled(p) is None]
+    labels = [p.label for p in use]
+    cov = np.diag([float(p.se) ** 2 for p in use])
+    for i, p in enumerate(use):
+        for j, q in enumerate(use):
+            if i != j and q.label in p.cov:
+                cov[i, j] = p.cov[q.label]
+    cov = 0.5 * (cov + cov.T)
+    return labels, np.array([p.value for p in use], float), cov
 
 
 def uncombined_params(tiles: Sequence[TileResult], combined: Sequence[str]) -> list[UncombinedParam]:
@@ -328,7 +328,7 @@ def uncombined_params(tiles: Sequence[TileResult], combined: Sequence[str]) -> l
                 seen.setdefault(p.label, []).append(p)
     out = []
     for ests in seen.values():
-        reasons = [_not_pooled(p) for p in ests]
+        reasons = [_not_pooled(p) for p in ests]  # (never None: a label pooled in any tile is combined)
         reason = max(dict.fromkeys(reasons), key=reasons.count)  # the most common; ties: the first seen
         vals = np.array([p.value for p in ests if p.converged and np.isfinite(p.value)], float)
         stats_ = (float(np.median(vals)), float(vals.min()), float(vals.max())) if vals.size else (None, None, None)
