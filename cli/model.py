@@ -338,8 +338,12 @@ def format_check(result: Any) -> str:
     for p in result.patterns:
         if not p.blocks:
             continue
-        hyper = f" (sets {p.hyper} = {_g(p.hyper_value)})" if p.hyper and p.hyper_value is not None else ""
+        # a random effect's spread (sigma_k, sigma_o) is its size in the frames where measured (fit.hypers_from_sizes)
+        sized = p.size is not None and p.hyper is not None and p.hyper_value == p.size
+        shown = p.hyper and p.hyper_value is not None and not sized
+        hyper = f" (sets {p.hyper} = {_g(p.hyper_value)})" if shown else ""
         size = f"; size in the frames {_g(p.size)} ± {_g(p.size_se)}" if p.size is not None else ""
+        size += f" (sets {p.hyper})" if sized else ""
         lines.append(f"  {p.effect + '.' + p.name:<32} pattern over {p.blocks} blocks: rms {_g(p.rms)}, "
                      f"max |value| {_g(p.maximum)}{hyper}{size}")
     if d.get("dark_series"):
