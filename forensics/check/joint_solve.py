@@ -436,7 +436,7 @@ def coupled_shrink(X: list[np.ndarray], Z: list[np.ndarray], F: np.ndarray, weig
     # the modes the data hardly determine (the smooth ones) are the last to converge and the first left behind
     g = blocks.apply(beta - fixed)
     if residual is not None:
-        v = np.where(weight > 0, weight * np.where(weight > 0, residual, 0.0), 0.0)
+        v = np.where(weight > 0, weight * residual, 0.0)  # (no weight: no residual, NaN or not)
         g += np.stack([np.einsum("r...,r...->...", x, v) for x in X])
         for r in coupled:
             back = kernel_transpose(F[r] * v[r])

@@ -188,7 +188,8 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sum(np.multiply(a, b, dtype=np.float64)))
 
 
-def held_out_score(columns: list[np.ndarray], zb: np.ndarray, model_columns: list[np.ndarray]) -> tuple[float, list[float]]:
+def held_out_score(columns: list[np.ndarray], zb: np.ndarray,
+                   model_columns: list[np.ndarray]) -> tuple[float, list[float]]:
     """The joint score statistic of the signature ``columns`` against the second half's residuals ``zb`` — the
     columns projected off the model's own global parameters (``model_columns``, all weighted alike) — and the
     share of each column's norm that survives that projection.
