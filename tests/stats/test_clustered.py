@@ -92,6 +92,8 @@ def test_coverage_on_class_structured_scores():
     Measured (this model): 0.93 at 100 classes, 0.89 at 40 (a percentile bootstrap over few clusters runs
     slightly short); the score-by-score bootstrap covers 0.77 at 40 classes because it ignores that
     comparisons share images.  Bound: 0.95 − 4 binomial standard errors (0.018 at n = 150) ≈ 0.88.
+    The score-by-score comparison uses 100 resamples (its 2.5/97.5 % points from 100 draws): on the first 40
+    sets it covers 33/40 with 100 resamples as with 300, at a third of the cost (58 → 20 s of this test).
     """
     truth = _population_eer()
     hits = hits_iid = 0
@@ -103,7 +105,7 @@ def test_coverage_on_class_structured_scores():
         hits += result.ci[0] <= truth <= result.ci[1]
         if seed < 40:
             g, i = pairs.split()
-            iid = bootstrap_eer(g, i, rng, n_boot=300)
+            iid = bootstrap_eer(g, i, rng, n_boot=100)
             hits_iid += iid.ci[0] <= truth <= iid.ci[1]
     coverage = hits / trials
     assert 0.88 <= coverage <= 0.995
