@@ -85,7 +85,7 @@ def _candidate(effect: Effect, name: str, tests: list[ChannelTest], n_obs: int, 
             p_raw *= 0.5
     else:
         dbic, p_raw = -q * math.log(max(n_obs, 2)), 1.0
-    absorbed = bool(tests) and all(t.absorbed and t.channel == "pixel" for t in tests)
+    absorbed = bool(tests) and all(t.absorbed for t in tests)
     evidence = "; ".join(t.detail for t in sorted(tests, key=lambda t: -t.lm)) or "no signature in these data"
     if where:
         evidence = f"{where}; {evidence}"
