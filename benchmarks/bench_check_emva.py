@@ -149,10 +149,30 @@ def pattern(result: dict | None, effect: str) -> tuple[float | None, float | Non
     return None, None
 
 
-def our_quantities(result: dict | None, temperature_c: float) -> dict[str, tuple[float | None, float | None]]:
+def dark_reference(folder: Path) -> float:
+    """The reference temperature the check's dark-current fit uses for ``folder``'s frames: the effect's own rule
+    (:meth:`~forensics.sensor.effects.DarkCurrent.fit`: 25 °C, moved to the dark frames' temperature when it lies
+    outside them), applied to the manifest's conditions."""
+    import collections
+    from types import SimpleNamespace
+
+    from forensics.io.dataset import open_dataset
+    from forensics.sensor.effects import DarkCurrent
+
+    counts = collections.Counter((f.exposure_s, f.temperature_c, f.subject) for f in open_dataset(folder).frames)
+    groups = [SimpleNamespace(exposure_s=t, temperature_c=temp, subject=subject, n=n)
+              for (t, temp, subject), n in counts.items()]
+    return DarkCurrent().fit(SimpleNamespace(meas=SimpleNamespace(groups=groups))).t_ref
+
+
+def our_quantities(result: dict | None, temperature_c: float, t_ref: float = 25.0
+                   ) -> dict[str, tuple[float | None, float | None]]:
     """The check's estimates of what emva1288 reports, in emva1288's units: K (DN/e⁻) = shot_noise.g; the dark
     noise σ_y.dark (DN) = √(read² + input² + 1/12); DSNU (DN) and PRNU (%) = the patterns' sizes as the frames
-    show them; the dark current (DN/s) at the series' temperature from the fitted rate at T_ref."""
+    show them; the dark current (DN/s) at the series' temperature from the fitted rate at ``t_ref``
+    (:func:`dark_reference`; this script took 25 °C until the sixteenth session, but on the standard series the fit
+    refers its rate to the frames' 22 °C: the 1.107 DN/s it printed was that rate, 1.490, carried from 25 to 22 °C
+    as if it were at 25)."""
     k = param(result, "shot_noise.g")
     read, read_se = param(result, "read_noise.sigma")
     inp, inp_se = param(result, "input_noise.sigma_in")
@@ -165,7 +185,6 @@ def our_quantities(result: dict | None, temperature_c: float) -> dict[str, tuple
     prnu = pattern(result, "prnu")
     rate, rate_se = param(result, "dark_current.rate")
     t_double, _ = param(result, "dark_current.t_double")
-    t_ref = 25.0  # the dark_current effect's reference temperature (a fixed parameter)
     dark = (None, None)
     if rate is not None:
         factor = 2.0 ** ((temperature_c - t_ref) / (t_double or 7.0))
@@ -213,7 +232,7 @@ def standard(work: Path, seeds: list[int], emva_python: str, timeout: float, row
         truth = json.loads((folder / "truth.json").read_text())
         rows.append({"part": "standard", "seed": seed, "frames": truth["frames"], "truth_K": truth["K"],
                      "emva": theirs, "forensics": ours,
-                     "ours": our_quantities(ours["result"], series.temperature_c),
+                     "ours": our_quantities(ours["result"], series.temperature_c, dark_reference(folder)),
                      "theirs": their_quantities(theirs["result"])})
 
 
@@ -257,7 +276,7 @@ def simulator_series(work: Path, name: str, design, seed: int, emva_python: str 
     n = sum(1 for _ in open(folder / "manifest.csv")) - 1
     rows.append({"part": part, "name": name, "frames": n, "shape": list(design.shape),
                  "truth_K": design.gains[iso], "emva": theirs, "forensics": ours,
-                 "ours": our_quantities(ours["result"], temp) if ours["result"] else None,
+                 "ours": our_quantities(ours["result"], temp, dark_reference(folder)) if ours["result"] else None,
                  "theirs": their_quantities(theirs["result"]) if theirs else None})
 
 
