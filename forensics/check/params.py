@@ -51,7 +51,5 @@ def bespoke_fit(effect: Effect, evidence: Evidence) -> Effect:
 
 
 def unit(effect: Effect, name: str) -> str:
-    for f in dataclasses.fields(effect):
-        if f.name == name:
-            return f.metadata.get("unit", "")
-    return ""
+    """The unit a fitted value of ``effect.name`` is reported in (:meth:`~forensics.sensor.model.Effect.param_unit`)."""
+    return effect.param_unit(name)

@@ -369,6 +369,13 @@ class DarkCurrent(Effect):
     def free_params(self) -> list[str]:  # type: ignore[override]
         return [n for n in super().free_params() if n not in self.held()]
 
+    def param_unit(self, name: str) -> str:
+        """The rates' unit names the temperature they refer to: :meth:`fit` may move ``t_ref`` into the data (a
+        series at 22 °C reports its rate at 22 °C, not at the default 25 °C), and a rate without it cannot be
+        compared with another tool's (emva1288's dark current is at the frames' temperature)."""
+        base = super().param_unit(name)
+        return f"{base} at {self.t_ref:g} °C" if name in ("rate", "sigma_rate", "rate_max") else base
+
     def held(self) -> dict[str, str]:
         if not self.t_double_held:
             return {}

@@ -316,6 +316,14 @@ class Effect:
                 out[kind] += np.sum(cat.onset[sel][:, None] <= times[None, :], axis=0)
         return {k: v / draws for k, v in out.items()}
 
+    def param_unit(self, name: str) -> str:
+        """The unit of parameter ``name`` as the check reports its value: the declared unit, which an effect whose
+        values refer to a setting the data chose (a dark rate at its reference temperature) extends with it."""
+        for f in dataclasses.fields(self):
+            if f.name == name:
+                return f.metadata.get("unit", "")
+        return ""
+
     def held(self) -> dict[str, str]:
         """Free parameters this effect holds at their value for the data :meth:`fit` saw (they are then left out
         of :meth:`free_params`), each with why those data cannot determine it; the check reports them as not

@@ -85,6 +85,10 @@ def check_standard(folder, series: StandardSeries) -> None:
     k = next(p for p in final.params if p.label == "shot_noise.g")
     assert k.se is not None and abs(k.value - series.K) <= 1.96 * k.se, k
     assert final.error["pixel"] < 1.05
+    # the dark rate refers to the frames' temperature (the fit moves T_ref into single-temperature data) and says so:
+    # read as a rate at the default 25 °C it was carried to 22 °C a second time (1.107 DN/s for 1.490 at 320 × 240)
+    rate = next(p for p in final.params if p.label == "dark_current.rate")
+    assert rate.unit == f"DN/s at {series.temperature_c:g} °C", rate
 
 
 def test_auto_converges_adds_shot_noise_and_covers_k(series):
