@@ -19,7 +19,8 @@ from forensics.check.signatures import Signature
 
 def _fitted(rng: np.random.Generator, bins: int = 120):
     """Binned variances at levels 0 … 200 DN with 50 degrees of freedom each: a read-noise model (σ = 0.7 DN)
-    whose residuals carry a misfit of 0.3 in log variance in the 10 bins next to 0 DN (what the censored variance law leaves there)."""
+    whose residuals carry a misfit of 0.3 in log variance in the 10 bins next to 0 DN (what the censored variance
+    law leaves there)."""
     level = np.linspace(0.0, 200.0, bins)
     df = np.full(bins, 50.0)
     pred = np.full(bins, 0.49 + 1 / 12)
