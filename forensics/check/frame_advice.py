@@ -53,11 +53,12 @@ def design_warnings(ev: Evidence, px: PixelData, candidates: list[Candidate], ef
             stage = EFFECTS[c.effect].stage.name.lower() if c.effect in EFFECTS else "?"
             out.append(f"{c.effect} cannot be tested with these data: its signature is zero here (it acts at the "
                        f"{stage} stage; e.g. on defective pixels, which these data may lack)")
-        if c.absorbed and all(t.channel == "pixel" for t in c.tests):
+        channels = {t.channel for t in c.tests} if c.absorbed else set()
+        if "pixel" in channels:
             model_names = ", ".join(e.key for e in effects if is_pixel(e))
             out.append(f"{c.effect} cannot be detected with these data: its signature is absorbed by the fitted "
                        f"parameters of {model_names}; {_frames_to_add(ev, px, c.effect, None)}")
-        elif c.absorbed:
+        if "variance" in channels:
             noise_names = ", ".join(e.key for e in effects if e.stage == Stage.NOISE)
             out.append(f"{c.effect} cannot be detected with these data: it moves the frames' temporal variance only "
                        f"as the fitted parameters of {noise_names} do")
