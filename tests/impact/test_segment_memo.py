@@ -118,11 +118,12 @@ def test_a_poisoned_memo_is_used_only_for_byte_identical_inputs(captures):
 @pytest.mark.realdata
 @pytest.mark.slow
 def test_real_eyes_aged_give_the_fresh_segmentation_with_the_memo():
-    # Eight real eyes (the first image of eight classes), sensors A, D, G and H over the paper's 13 ages.
+    # Four real eyes (the first image of four classes ten subjects apart), sensors A, D, G and H over the paper's 13
+    # ages (eight eyes took 34 s of a CI worker; every step kind is reached with four).
     if not (IITD / "manifest.csv").is_file():
         pytest.skip(f"the IITD iris images are not at {IITD} (research-use data kept outside the repository)")
     frames = open_dataset(IITD).frames
-    images = [f.load() for f in frames[::50]]
+    images = [f.load() for f in frames[::100]]
     counts = _check_chains(images, "A,D,G,H", [float(a) for a in range(0, 97, 8)])
     assert all(hits > 0 for hits, _ in counts.values())
     assert counts["H"][1] > 0
