@@ -21,6 +21,12 @@ from forensics.cli.common import (
 )
 
 
+
+def max_steps(args: argparse.Namespace) -> dict[str, int]:
+    """``--max-steps`` as a keyword of :func:`~forensics.check.check_auto`; none when not given, so the library's
+    default holds (not imported here: the parser stays fast to build)."""
+    return {} if args.max_steps is None else {"max_steps": args.max_steps}
+
 def register(sub) -> None:
     parser = sub.add_parser(
         "model", help="the physical sensor model: its effects, and checking it against measurements",
@@ -56,7 +62,7 @@ def register(sub) -> None:
     check.add_argument("--auto", action="store_true",
                        help="forward selection: add flagged candidates one at a time until nothing is flagged")
     check.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
-                       help="with --auto: add at most N effects (default 5)")
+                       help="with --auto: add at most N effects (default: the library's forensics.check.select.DEFAULT_MAX_STEPS, 8)")
     check.add_argument("--region", default=None, metavar="TOP,LEFT,HEIGHT,WIDTH",
                        help="check only this part of every frame (pixels; a single number N: the central N×N); "
                             "default the whole frame, whatever its size; the warnings say which region was used")
@@ -149,7 +155,7 @@ def _run_auto(args: argparse.Namespace) -> int:
     ds = open_input(args, args.data)
     region = parse_region(args.region, ds)
     with executor_for(args) as ex:
-        sel = check_auto(ds, add=args.add, rng=args.seed, max_steps=5 if args.max_steps is None else args.max_steps,
+        sel = check_auto(ds, add=args.add, rng=args.seed, **max_steps(args),
                          progress=progress_for(args), region=region, executor=ex)
         execution = ex.info()
     if args.report:
@@ -178,7 +184,7 @@ def _run_tiles(args: argparse.Namespace) -> int:
     add, sel = list(args.add), None
     with executor_for(args) as ex:
         if args.auto:
-            sel = check_auto(ds, add=args.add, rng=args.seed, max_steps=5 if args.max_steps is None else args.max_steps,
+            sel = check_auto(ds, add=args.add, rng=args.seed, **max_steps(args),
                              progress=progress_for(args), region=central_region(ds.shape(), args.tiles), executor=ex)
             given = {e.key for e in resolve_effects(args.add)}
             add += [k for k in _added(sel.result) if k not in given]

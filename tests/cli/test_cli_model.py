@@ -129,3 +129,11 @@ def test_check_auto_ladder_and_max_steps(pair, capsys):
     assert "Same model by hand: forensics model check" in text
     assert main(["model", "check", str(pair), "--max-steps", "2"]) == 2
     assert "--max-steps needs --auto" in capsys.readouterr().err
+
+
+def test_max_steps_help_names_the_library_default(capsys):
+    from forensics.check.select import DEFAULT_MAX_STEPS
+
+    with pytest.raises(SystemExit):
+        main(["model", "check", "--help"])
+    assert f"DEFAULT_MAX_STEPS, {DEFAULT_MAX_STEPS})" in " ".join(capsys.readouterr().out.split())
