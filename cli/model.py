@@ -137,6 +137,7 @@ def run_check(args: argparse.Namespace) -> int:
     info(args, f"forensics model check: reading {args.data} …")
     ds = open_input(args, args.data)
     region = parse_region(args.region, ds)
+    advise_tiles(args, ds, region)
     with executor_for(args) as ex:
         result = check(ds, add=args.add, rng=args.seed, progress=progress_for(args), region=region, executor=ex)
         execution = ex.info()
@@ -154,6 +155,7 @@ def _run_auto(args: argparse.Namespace) -> int:
     info(args, f"forensics model check --auto: reading {args.data} …")
     ds = open_input(args, args.data)
     region = parse_region(args.region, ds)
+    advise_tiles(args, ds, region)
     with executor_for(args) as ex:
         sel = check_auto(ds, add=args.add, rng=args.seed, **max_steps(args),
                          progress=progress_for(args), region=region, executor=ex)
@@ -257,6 +259,16 @@ def format_tiles(tiled: Any) -> str:
     if tiled.warnings:
         lines += ["", "Warnings"] + [f"  - {w}" for w in tiled.warnings]
     return "\n".join(lines)
+
+
+def advise_tiles(args: argparse.Namespace, ds: Any, region: tuple[int, int, int, int] | None) -> None:
+    """A note (stderr, not with --quiet) when one fit of the frames or region would hold many GB."""
+    from forensics.check.tiles import whole_frame_advice
+
+    h, w = ds.shape() if region is None else region[2:]
+    advice = whole_frame_advice(int(h) * int(w), len(ds.frames))
+    if advice:
+        info(args, f"note: {advice}")
 
 
 def parse_region(spec: str | None, ds: Any) -> tuple[int, int, int, int] | None:

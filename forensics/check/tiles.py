@@ -1,7 +1,8 @@
 """The model check of whole frames, tile by tile: memory bounded by a tile, time linear in the pixels.
 
-A whole-frame fit holds (conditions × frame) arrays — ≈ 2.2 KB per pixel and fitted condition, 43 GB for a 1 MP
-dark series.  Here the frame is cut into tiles of about ``size × size`` pixels; each tile is read (its region of
+A whole-frame fit holds (conditions × frame) arrays — ≈ 0.66 KB per pixel and fitted condition since the
+seventeenth session (2.2 KB before, when the cached inverses of the chain kept frame-sized tables), 12 GB for a 1 MP
+series of 18 conditions (:func:`whole_frame_advice`).  Here the frame is cut into tiles of about ``size × size`` pixels; each tile is read (its region of
 every frame, with a halo of its neighbours' pixels) and checked on its own — the whole check, memory of one tile
 per worker — and the tiles' results are combined:
 
@@ -62,6 +63,32 @@ HALO = 3
 
 #: The smallest tile side: the check of a region needs a 7 × 7 scene window inside its 3-pixel border.
 MIN_TILE = 16
+
+#: Peak memory of a whole-frame ``--auto`` check per pixel and frame read (bytes): the EMVA 1288 simulator's
+#: 216-frame series (320 × 240, 210 frames with content) peaked at 5.3 GB (benchmarks/RESULTS_check.md, seventeenth
+#: session).  An estimate for advice, not a bound: it grows with the effects fitted.
+WHOLE_FRAME_BYTES = 330
+#: A whole-frame check estimated above this (bytes) is pointed to ``--tiles``.
+TILES_ADVICE_BYTES = 2 * 2**30
+
+
+def whole_frame_advice(n_pixels: int, n_frames: int, limit: float = TILES_ADVICE_BYTES) -> str | None:
+    """Advice to check tile by tile when one fit of ``n_frames`` frames of ``n_pixels`` pixels is estimated to
+    hold more than ``limit`` bytes (:data:`WHOLE_FRAME_BYTES`); None below it.
+
+    Examples
+    --------
+    >>> whole_frame_advice(64 * 64, 108) is None
+    True
+    >>> whole_frame_advice(4000 * 3000, 36)[:54]
+    'checking the whole frame as one fit needs about 133 GB'
+    """
+    estimate = float(n_pixels) * n_frames * WHOLE_FRAME_BYTES
+    if estimate <= limit:
+        return None
+    return (f"checking the whole frame as one fit needs about {estimate / 2**30:.0f} GB ({n_frames} frames of "
+            f"{n_pixels:,} pixels) and minutes per step; --tiles 128 checks it tile by tile in the memory of one "
+            "tile per worker (with --workers N in parallel)")
 
 
 @dataclass(frozen=True)

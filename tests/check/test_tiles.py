@@ -306,3 +306,14 @@ def test_a_disk_that_fills_up_while_decoding_leaves_the_files_to_the_tiles(tmp_p
     with framecache.frame_cache(ds, tmp_path) as (same, why):
         assert same is ds and "No space left" in why
     assert [p.name for p in tmp_path.iterdir()] == ["d"]
+
+
+def test_whole_frame_advice_points_to_tiles_above_its_limit():
+    from forensics.check.tiles import whole_frame_advice
+
+    # the hidden-effect datasets (128², 108 frames) fit in well under a GB: no advice
+    assert whole_frame_advice(128 * 128, 108) is None
+    # the EMVA simulator's 216-frame series, whose whole-frame --auto peaked at 5.3 GB (RESULTS_check.md)
+    text = whole_frame_advice(320 * 240, 210)
+    assert "about 5 GB" in text and "--tiles 128" in text and "210 frames of 76,800 pixels" in text
+    assert whole_frame_advice(320 * 240, 210, limit=6 * 2**30) is None
