@@ -21,11 +21,11 @@ from forensics.cli.common import (
 )
 
 
-
 def max_steps(args: argparse.Namespace) -> dict[str, int]:
     """``--max-steps`` as a keyword of :func:`~forensics.check.check_auto`; none when not given, so the library's
     default holds (not imported here: the parser stays fast to build)."""
     return {} if args.max_steps is None else {"max_steps": args.max_steps}
+
 
 def register(sub) -> None:
     parser = sub.add_parser(
@@ -62,7 +62,8 @@ def register(sub) -> None:
     check.add_argument("--auto", action="store_true",
                        help="forward selection: add flagged candidates one at a time until nothing is flagged")
     check.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
-                       help="with --auto: add at most N effects (default: the library's forensics.check.select.DEFAULT_MAX_STEPS, 8)")
+                       help="with --auto: add at most N effects "
+                            "(default: the library's forensics.check.select.DEFAULT_MAX_STEPS, 8)")
     check.add_argument("--region", default=None, metavar="TOP,LEFT,HEIGHT,WIDTH",
                        help="check only this part of every frame (pixels; a single number N: the central N×N); "
                             "default the whole frame, whatever its size; the warnings say which region was used")

@@ -2,9 +2,9 @@
 
 A whole-frame fit holds (conditions × frame) arrays — ≈ 0.66 KB per pixel and fitted condition since the
 seventeenth session (2.2 KB before, when the cached inverses of the chain kept frame-sized tables), 12 GB for a 1 MP
-series of 18 conditions (:func:`whole_frame_advice`).  Here the frame is cut into tiles of about ``size × size`` pixels; each tile is read (its region of
-every frame, with a halo of its neighbours' pixels) and checked on its own — the whole check, memory of one tile
-per worker — and the tiles' results are combined:
+series of 18 conditions (:func:`whole_frame_advice`).  Here the frame is cut into tiles of about ``size × size``
+pixels; each tile is read (its region of every frame, with a halo of its neighbours' pixels) and checked on its own
+— the whole check, memory of one tile per worker — and the tiles' results are combined:
 
 * **Global parameters** (black level, conversion gain, dark rate, read noise …): each tile's estimate with its
   covariance is a quadratic approximation of that tile's log-likelihood; the tiles' pixels are disjoint
