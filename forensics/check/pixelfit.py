@@ -364,7 +364,8 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
     common modes (None without such patterns), and the parameters' weighted, profiled derivative columns J (the
     directions of the held-out score tests' projection: :func:`~forensics.check.scoretests.score_pixel`).
     ``coupling``: the cycle's (Z, F) when the patterns are solved jointly (:func:`_coupling`): the parameters are
-    then profiled against that joint solve (with the pattern weights ``wp``), else pixel by pixel.  ``raw``: the unclipped prediction of the current state, if known."""
+    then profiled against that joint solve (with the pattern weights ``wp``), else pixel by pixel.  ``raw``: the
+    unclipped prediction of the current state, if known."""
     dev = on_device(device, effects)
     r = y - mu
     raw = predict(dev, clip=False) if raw is None else raw

@@ -65,8 +65,8 @@ HALO = 3
 MIN_TILE = 16
 
 #: Peak memory of a whole-frame ``--auto`` check per pixel and frame read (bytes): the EMVA 1288 simulator's
-#: 216-frame series (320 × 240, 210 frames with content) peaked at 5.3 GB (benchmarks/RESULTS_check.md, seventeenth
-#: session).  An estimate for advice, not a bound: it grows with the effects fitted.
+#: 216-frame series (320 × 240, 210 frames with content) peaked at 5.2–5.3 GB (benchmarks/RESULTS_check.md,
+#: seventeenth session).  An estimate for advice, not a bound: it grows with the effects fitted.
 WHOLE_FRAME_BYTES = 330
 #: A whole-frame check estimated above this (bytes) is pointed to ``--tiles``.
 TILES_ADVICE_BYTES = 2 * 2**30

@@ -313,7 +313,7 @@ def test_whole_frame_advice_points_to_tiles_above_its_limit():
 
     # the hidden-effect datasets (128², 108 frames) fit in well under a GB: no advice
     assert whole_frame_advice(128 * 128, 108) is None
-    # the EMVA simulator's 216-frame series, whose whole-frame --auto peaked at 5.3 GB (RESULTS_check.md)
+    # the EMVA simulator's 216-frame series, whose whole-frame --auto peaked at 5.2–5.3 GB (RESULTS_check.md)
     text = whole_frame_advice(320 * 240, 210)
     assert "about 5 GB" in text and "--tiles 128" in text and "210 frames of 76,800 pixels" in text
     assert whole_frame_advice(320 * 240, 210, limit=6 * 2**30) is None
