@@ -29,7 +29,7 @@ from forensics._shared.arrays import grey_mean, infer_full_scale
 from forensics._shared.errors import InputError
 from forensics._shared.progress import Progress, no_progress
 from forensics.check.classes import QUANT_VAR
-from forensics.check.scene import KERNEL, KERNEL_VAR, SCENE_SIZE, scene_estimate
+from forensics.check.scene import KERNEL, KERNEL_VAR, SCENE_SIZE, correlate_kernel, scene_estimate
 from forensics.io.dataset import LIGHT_COLUMN, Dataset, open_dataset, split_epochs
 from forensics.io.stack import StackAccumulator, StackStats, prefetch
 
@@ -221,7 +221,7 @@ def frame_residual(grey: np.ndarray) -> np.ndarray:
     beyond its own noise's small share (w² ≤ 0.006).  Within the kernel's reach of the edge (outside the
     check's border) the reflection makes the value differ from the pixel channel's.
     """
-    return grey - ndimage.correlate(grey, KERNEL, mode="reflect")
+    return grey - correlate_kernel(grey)
 
 
 def block_means(grey: np.ndarray, size: int = DRIFT_BLOCK) -> np.ndarray:

@@ -319,7 +319,14 @@ def _near_bound_means(mu: np.ndarray, ctx: FrameContext, full_scale: float, reac
     if hi < 3 or not near.any():
         return out
     sigma = np.sqrt(noise_variance(noise, mu[near], ctx, elec[near]))
-    out[near] = bounded(mu[near], sigma, hi)
+    m = mu[near]
+    if m.size > 1 and m.min() == m.max() and sigma.min() == sigma.max():
+        # a frame without pixel patterns (the base model, shot noise, dark current …): every pixel shares (μ, σ)
+        # and one value serves them all — on the EMVA 1288 standard series, 40 % of the check's time went to
+        # tabulating and interpolating the one value 76,800 times per condition
+        out[near] = bounded(m[:1], sigma[:1], hi)[0]
+        return out
+    out[near] = bounded(m, sigma, hi)
     return out
 
 

@@ -78,3 +78,24 @@ def test_truncated_mean_deep_below_zero_at_a_wide_noise():
     deep = (0.5 - mu) / sigma > 5.0
     assert np.max(np.abs(got[deep] - exact[deep])) < TABLE_TOLERANCE
     assert tabulated_truncated_mean(mu[deep], sigma[deep], 0, 65535) is not None
+
+
+def test_a_frame_whose_pixels_share_their_mean_gets_the_exact_sum():
+    # a model without pixel patterns predicts one mean per condition: the near-bound mean is computed once (a
+    # shortcut for speed, measured in benchmarks/RESULTS_check.md) and must be the exact sum at every pixel; a frame
+    # whose pixels differ still matches the sum within the table's tolerance
+    from forensics.check.prediction import censored_mean
+    from forensics.sensor.effects import Offset, ReadNoise
+    from forensics.sensor.model import SensorModel
+
+    device = SensorModel(shape=(200, 300), bit_depth=12, effects=[Offset(), ReadNoise(sigma=0.45)],
+                         t0=0.0).realize(np.random.default_rng(0), [1.0])
+    ctx = device.context(1.0)
+    sigma = np.sqrt(0.45**2)
+    flat = np.full((200, 300), 1.3)
+    exact = readout_moments(np.array([1.3]), np.array([sigma]), 0, 4095, truncate=True, closed_form=False)[0][0]
+    got = censored_mean(flat, ctx, 4095.0)
+    assert np.all(got == exact)
+    varied = flat + np.random.default_rng(1).uniform(-0.5, 0.5, flat.shape)
+    want = readout_moments(varied, np.full(varied.shape, sigma), 0, 4095, truncate=True, closed_form=False)[0]
+    assert np.max(np.abs(censored_mean(varied, ctx, 4095.0) - want)) < TABLE_TOLERANCE
