@@ -276,6 +276,63 @@ TABLE_CHECKS = 512
 TABLE_SIGMA_MIN = 0.1
 
 
+def _lagrange_weights(u: np.ndarray, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """For positions ``u`` in grid units on a grid of ``n`` nodes: the index ``i`` of each one's interval, clipped
+    to [1, n − 3], and the weights of nodes i − 1 … i + 2 of the cubic through them (Lagrange)."""
+    i = np.clip(np.floor(u).astype(np.intp), 1, n - 3)
+    t = u - i
+    tm, tp, t2 = t - 1.0, t + 1.0, t - 2.0
+    return i, [(t * tm * t2) / -6.0, (tp * tm * t2) / 2.0, (tp * t * t2) / -2.0, (tp * t * tm) / 6.0]
+
+
+def uniform_cubic(start: float, step: float, table: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The cubic through the four table values around each ``x`` (Lagrange, nodes ``start + k·step``), for ``x``
+    at least one step inside the table's ends.  Error ≤ (3/128)·step⁴·|f⁗| between the middle nodes.
+
+    Why by hand: on a uniform grid the interval is an index, not a search — a third of the time of scipy's
+    B-spline evaluation for the model check's dark frames (76,800 values, once per condition and prediction).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> grid = np.arange(0.0, 2.01, 0.25)
+    >>> round(float(uniform_cubic(0.0, 0.25, grid**3, np.array([1.1]))[0]), 12)  # exact for cubics
+    1.331
+    """
+    i, w = _lagrange_weights((np.asarray(x, float) - start) / step, len(table))
+    out = w[0] * table[i - 1]
+    for k in range(1, 4):
+        out += w[k] * table[i + k - 1]
+    return out
+
+
+def uniform_bicubic(starts: tuple[float, float], steps: tuple[float, float], table: np.ndarray, x: np.ndarray,
+                    y: np.ndarray) -> np.ndarray:
+    """:func:`uniform_cubic` in two variables: the tensor-product cubic through the 4 × 4 table values around each
+    (``x``, ``y``) on a uniform grid (``table[j, k]`` at ``starts + (j, k)·steps``; at least 4 nodes along each).
+    Exact for polynomials of degree 3 in each variable.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> gx, gy = np.arange(0.0, 2.01, 0.25), np.arange(1.0, 2.01, 0.25)
+    >>> table = gx[:, None] ** 3 * gy[None, :] ** 2
+    >>> round(float(uniform_bicubic((0.0, 1.0), (0.25, 0.25), table, np.array([1.1]), np.array([1.3]))[0]), 12)
+    2.24939
+    """
+    i, wx = _lagrange_weights((np.asarray(x, float) - starts[0]) / steps[0], table.shape[0])
+    j, wy = _lagrange_weights((np.asarray(y, float) - starts[1]) / steps[1], table.shape[1])
+    flat = table.ravel()
+    base = (i - 1) * table.shape[1] + (j - 1)
+    out = np.zeros(np.shape(i))
+    for a in range(4):
+        row = wy[0] * flat[base + a * table.shape[1]]
+        for b in range(1, 4):
+            row += wy[b] * flat[base + a * table.shape[1] + b]
+        out += wx[a] * row
+    return out
+
+
 def tabulated_truncated_mean(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int,
                              tolerance: float = TABLE_TOLERANCE) -> np.ndarray | None:
     """:func:`readout_moments`' truncated mean (conditional on lo < y < hi) by a bicubic spline over a grid of
@@ -284,13 +341,11 @@ def tabulated_truncated_mean(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int
     Why: the exact sum costs O(σ) normal tail probabilities per value (≈ 2 µs), and the model check evaluates it
     for every pixel of every dark frame near 0 DN at every prediction — most of its time on the EMVA 1288
     standard series (σ ≈ 0.5 DN, black level 1 DN).  The mean is smooth in μ and σ for σ ≳ 0.1 DN, so a table
-    over the values' range (spacing :data:`TABLE_STEP`·σ_min, a few thousand exact sums) interpolated by
-    :class:`scipy.interpolate.RectBivariateSpline` costs ≈ 0.15 µs per value.  The table is trusted only after
+    over the values' range (spacing :data:`TABLE_STEP`·σ_min, a few thousand exact sums) interpolated by local
+    cubics (:func:`uniform_cubic`, :func:`uniform_bicubic`) costs ≈ 0.05 µs per value.  The table is trusted only after
     :data:`TABLE_CHECKS` of the values (every n-th, plus the extremes) agree with the exact sum within
     ``tolerance``; it is refused when it would not be much smaller than the values themselves.
     """
-    from scipy.interpolate import RectBivariateSpline, make_interp_spline
-
     mu, sigma = np.asarray(mu, float).ravel(), np.asarray(sigma, float).ravel()
     if mu.size < 2 * TABLE_CHECKS:
         return None
@@ -303,13 +358,16 @@ def tabulated_truncated_mean(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int
     n_sigma = 1 if one_sigma else max(int(np.ceil((s_hi - s_lo) / h)) + 1, 4)
     if grid_mu.size * n_sigma + TABLE_CHECKS > mu.size // 2:
         return None  # the table and its check would cost a good part of the exact sums they replace
-    if one_sigma:  # a spline in μ alone
+    if one_sigma:  # a cubic in μ alone
         table = readout_moments(grid_mu, s_lo, lo, hi, truncate=True, closed_form=False)[0]
-        out = make_interp_spline(grid_mu, table, k=3)(mu)
+        out = uniform_cubic(float(grid_mu[0]), h, table, mu)
     else:
-        grid_sigma = np.linspace(s_lo, s_hi, n_sigma)
+        # σ's grid reaches a step beyond both ends, as μ's does, so that every value has its 4 × 4 nodes around it
+        # (its step is at most TABLE_STEP·σ_min: the node below σ_min is still above 0)
+        h_sigma = (s_hi - s_lo) / (n_sigma - 1)
+        grid_sigma = s_lo + h_sigma * np.arange(-1, n_sigma + 1)
         table = readout_moments(grid_mu[:, None], grid_sigma[None, :], lo, hi, truncate=True, closed_form=False)[0]
-        out = RectBivariateSpline(grid_mu, grid_sigma, table, kx=3, ky=3, s=0).ev(mu, sigma)
+        out = uniform_bicubic((float(grid_mu[0]), float(grid_sigma[0])), (h, h_sigma), table, mu, sigma)
     step = max(1, mu.size // TABLE_CHECKS)
     check = np.unique(np.concatenate([np.arange(0, mu.size, step),
                                       [np.argmin(mu), np.argmax(mu), np.argmin(sigma), np.argmax(sigma)]]))

@@ -99,3 +99,26 @@ def test_a_frame_whose_pixels_share_their_mean_gets_the_exact_sum():
     varied = flat + np.random.default_rng(1).uniform(-0.5, 0.5, flat.shape)
     want = readout_moments(varied, np.full(varied.shape, sigma), 0, 4095, truncate=True, closed_form=False)[0]
     assert np.max(np.abs(censored_mean(varied, ctx, 4095.0) - want)) < TABLE_TOLERANCE
+
+
+def test_uniform_cubic_is_exact_for_cubics_and_fourth_order_otherwise():
+    from forensics.stats.censored import uniform_cubic
+
+    grid = np.arange(-1.0, 3.0 + 1e-9, 0.1)
+    x = np.random.default_rng(7).uniform(-0.85, 2.85, 1000)
+    cubic = lambda v: 2.0 - v + 0.5 * v**2 - 0.3 * v**3  # noqa: E731
+    np.testing.assert_allclose(uniform_cubic(-1.0, 0.1, cubic(grid), x), cubic(x), rtol=0, atol=1e-12)
+    # exp: |f⁗| ≤ e³ on the grid, so the error is at most (3/128)·0.1⁴·e³ ≈ 4.7e-5
+    err = np.max(np.abs(uniform_cubic(-1.0, 0.1, np.exp(grid), x) - np.exp(x)))
+    assert 1e-7 < err <= 3 / 128 * 0.1**4 * np.exp(3.0)
+
+
+def test_uniform_bicubic_is_exact_for_bicubics():
+    from forensics.stats.censored import uniform_bicubic
+
+    gx, gy = np.arange(-1.0, 3.0 + 1e-9, 0.1), np.arange(0.4, 0.9 + 1e-9, 0.05)
+    f = lambda x, y: (1 + x - 0.2 * x**3) * (2 - y + 0.7 * y**2 + 0.1 * y**3)  # noqa: E731
+    rng = np.random.default_rng(8)
+    x, y = rng.uniform(-0.9, 2.9, 1000), rng.uniform(0.45, 0.85, 1000)
+    got = uniform_bicubic((-1.0, 0.4), (0.1, 0.05), f(gx[:, None], gy[None, :]), x, y)
+    np.testing.assert_allclose(got, f(x, y), rtol=0, atol=1e-11)
