@@ -158,11 +158,9 @@ def _radial_coefficients(kernel: np.ndarray) -> tuple[float, float] | None:
     x → −x, y → −y and x ↔ y that row has no x, y or xy part and equal x² and y² parts."""
     n = kernel.shape[0]
     h = n // 2
-    if kernel.shape != (n, n) or n < 3 or n % 2 == 0:
+    if kernel.shape != (n, n) or n < 5 or n % 2 == 0:
         return None
-    c2 = (kernel[h, h + 2] - kernel[h, h + 1]) / 3.0 if n >= 5 else None
-    if c2 is None:
-        return None
+    c2 = (kernel[h, h + 2] - kernel[h, h + 1]) / 3.0
     c0 = kernel[h, h + 1] - c2
     yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
     model = c0 + c2 * (xx * xx + yy * yy)
