@@ -176,6 +176,22 @@ _KERNEL_RADIAL = _radial_coefficients(KERNEL)
 _ROWS_PER_BLOCK = 64
 
 
+def _padded_rows(img: np.ndarray, y0: int, y1: int, h: int, mode: str) -> np.ndarray:
+    """Rows ``y0 − h … y1 + h − 1`` of ``img`` padded by ``h`` on every side as ``ndimage`` extends it ("reflect":
+    d c b a | a b c d, numpy's "symmetric"; "constant": zeros), in float64 — one block, not the whole frame."""
+    H = img.shape[0]
+    r = np.arange(y0 - h, y1 + h)
+    if mode == "reflect":
+        r = np.where(r < 0, -r - 1, r)
+        r = np.where(r >= H, 2 * H - 1 - r, r)
+        block = img[r].astype(np.float64)
+    else:
+        block = np.zeros((r.size, img.shape[1]))
+        inside = (r >= 0) & (r < H)
+        block[inside] = img[r[inside]]
+    return np.pad(block, ((0, 0), (h, h)), mode="symmetric" if mode == "reflect" else "constant")
+
+
 def correlate_kernel(image: np.ndarray, mode: str = "reflect") -> np.ndarray:
     """``ndimage.correlate(image, KERNEL, mode=mode)`` for ``mode`` "reflect" or "constant" (zero outside),
     from box sums and squared-offset sums along each axis (equal to it within rounding: ~10⁻¹⁵ relative).
@@ -184,19 +200,18 @@ def correlate_kernel(image: np.ndarray, mode: str = "reflect") -> np.ndarray:
     correlation is c₀·(7 × 7 box sum − centre) + c₂·(Σ x²·I + Σ y²·I), each a pair of 7-tap sums along the two
     axes; as contiguous slices of the padded image, a block of rows at a time, that is 2.6–2.9× faster than
     ``scipy.ndimage.correlate`` on frames of 134² to 320 × 240 (benchmarks/RESULTS_check.md, eighteenth session)
-    — the correlation was a fifth of the check's time.  Computed in float64; returned in ``image``'s dtype."""
+    — the correlation was a fifth of the check's time.  Computed in float64, padded a block at a time (memory of a
+    block besides the output, as for a whole 24 MP frame); returned in ``image``'s dtype."""
     img = np.asarray(image)
     if _KERNEL_RADIAL is None or img.ndim != 2 or mode not in ("reflect", "constant") or min(img.shape) < 4:
         return ndimage.correlate(img, KERNEL, mode=mode)
     c0, c2 = _KERNEL_RADIAL
     h = SCENE_SIZE // 2
     H, W = img.shape
-    # ndimage's "reflect" (d c b a | a b c d) is numpy's "symmetric"
-    P = np.pad(np.asarray(img, np.float64), h, mode="symmetric" if mode == "reflect" else "constant")
     out = np.empty((H, W), np.float64)
     for y0 in range(0, H, _ROWS_PER_BLOCK):
         y1 = min(y0 + _ROWS_PER_BLOCK, H)
-        rows = P[y0:y1 + 2 * h]
+        rows = _padded_rows(img, y0, y1, h, mode)
         n = y1 - y0
         s1 = rows[:, 2:W + 2] + rows[:, 4:W + 4]  # the pairs of columns at |x| = 1, 2, 3
         s2 = rows[:, 1:W + 1] + rows[:, 5:W + 5]
