@@ -198,7 +198,7 @@ def correlate_kernel(image: np.ndarray, mode: str = "reflect") -> np.ndarray:
 
     Why by hand: the kernel is c₀ + c₂·(x² + y²) off its centre (:func:`_radial_coefficients`), so the 49-tap
     correlation is c₀·(7 × 7 box sum − centre) + c₂·(Σ x²·I + Σ y²·I), each a pair of 7-tap sums along the two
-    axes; as contiguous slices of the padded image, a block of rows at a time, that is 2.6–2.9× faster than
+    axes; as contiguous slices of the padded image, a block of rows at a time, that is about 2–2.7× faster than
     ``scipy.ndimage.correlate`` on frames of 134² to 320 × 240 (benchmarks/RESULTS_check.md, eighteenth session)
     — the correlation was a fifth of the check's time.  Computed in float64, padded a block at a time (memory of a
     block besides the output, as for a whole 24 MP frame); returned in ``image``'s dtype."""
