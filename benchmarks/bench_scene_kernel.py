@@ -32,7 +32,7 @@ from scipy.interpolate import RectBivariateSpline, make_interp_spline
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from forensics.check.scene import KERNEL, correlate_kernel  # noqa: E402
-from forensics.stats.censored import readout_moments, uniform_bicubic, uniform_cubic  # noqa: E402
+from forensics.stats.censored import TABLE_STEP, readout_moments, uniform_bicubic, uniform_cubic  # noqa: E402
 
 
 def settle_allocator() -> None:
@@ -73,7 +73,7 @@ def table_rows() -> list[str]:
     mu = rng.uniform(1.0, 3.0, n)
     for label, sigma in (("one σ", np.full(n, 0.45)), ("σ 0.43–0.52", rng.uniform(0.43, 0.52, n))):
         s_lo, s_hi = float(sigma.min()), float(sigma.max())
-        h = 0.025 * s_lo
+        h = TABLE_STEP * s_lo  # the grid tabulated_truncated_mean builds
         grid = np.arange(float(mu.min()) - 2 * h, float(mu.max()) + 3 * h, h)
         if s_hi - s_lo < 1e-9:
             table = readout_moments(grid, s_lo, 0, 4095, truncate=True, closed_form=False)[0]

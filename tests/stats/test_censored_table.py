@@ -91,7 +91,7 @@ def test_a_frame_whose_pixels_share_their_mean_gets_the_exact_sum():
     device = SensorModel(shape=(200, 300), bit_depth=12, effects=[Offset(), ReadNoise(sigma=0.45)],
                          t0=0.0).realize(np.random.default_rng(0), [1.0])
     ctx = device.context(1.0)
-    sigma = np.sqrt(0.45**2)
+    sigma = 0.45  # the read noise alone: σ of every pixel
     flat = np.full((200, 300), 1.3)
     exact = readout_moments(np.array([1.3]), np.array([sigma]), 0, 4095, truncate=True, closed_form=False)[0][0]
     got = censored_mean(flat, ctx, 4095.0)
