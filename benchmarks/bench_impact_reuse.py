@@ -21,7 +21,8 @@ that other programs on a shared machine inflate it less than wall time):
 
 * the reuse of comparison scores between byte-identical templates (:mod:`forensics.impact.reuse`): every
   distinct set of aged images is encoded by every algorithm and each template digested
-  (:func:`~forensics.impact.reuse.template_digest`, whose CPU time is measured too), then the run's own rule is
+  (:func:`~forensics.impact.reuse.score_digest`, as the run keys its scores: a built-in's code without its
+  segmentation; its CPU time is measured too), then the run's own rule is
   replayed on the digests — each sensor's later distinct ages in age order, every (algorithm, protocol) starting
   from the stored scores leaving the fewest pairs (:func:`~forensics.impact.reuse.best_base`) — counting the
   matrix entries the run computes (:func:`~forensics.impact.reuse.upper_entries_computed`: ``fill_upper``'s
@@ -66,6 +67,7 @@ from forensics.impact.reuse import (
     band_untouched,
     best_base,
     segment_reusing,
+    score_digest,
     template_digest,
     upper_entries_computed,
 )
@@ -252,7 +254,7 @@ def encode_cells(sets: dict, digests: dict, structure, matchers
                 band_cpu += time.process_time() - t0
                 template = m.encode_texture(*band)
                 t0 = time.process_time()
-                digs[m.name].append(template_digest(template))
+                digs[m.name].append(score_digest(m, template))
                 hash_cpu += time.process_time() - t0
                 hashed += 1
         memo_of[task], segs_of[task] = memos, segs
@@ -403,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
     sensors = parse_sensors(args.sensors, images[0].shape[:2], 8)
     t_start = time.process_time()
     settings = {k: str(getattr(args, k)) for k in ("images", "segmentation", "seed", "sensors", "algorithms")}
-    settings["format"] = "4"       # segmentation and sheets per task with their reuse (files of format 1-3 lack them)
+    settings["format"] = "5"       # scores keyed by score_digest (format 4: by the whole template)
     if args.measurements and args.measurements.is_file():
         m = load_measurements(args.measurements, settings)
         print(f"measurements read from {args.measurements} (made {m['made']})")
@@ -437,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
                                   for x, y in zip(versions[now, name], versions[prev, name])]))
             prev = now
         changed[spec.name] = f"{np.mean(steps):.0%} ({len(steps)} steps)" if steps else "-"
-    print("templates changed per step of a chain (previous computed age to the next; mean over steps and "
+    print("codes changed per step of a chain (previous computed age to the next; mean over steps and "
           "algorithms): " + ", ".join(f"{k} {v}" for k, v in changed.items()))
 
     # The replay at the measured size (what --check compares with the run), then at the paper's.

@@ -29,7 +29,7 @@ __getattr__, __dir__, __all__ = _lazy.attach(
         "dct": ["DctMatcher", "DctTemplate"],
         "cr": ["CrMatcher"],
         "cb": ["CbMatcher", "CbTemplate"],
-        "reuse": ["ScoredPairs", "template_digest"],
+        "reuse": ["ScoredPairs", "score_digest", "template_digest"],
         "experiment": [
             "PROTOCOLS", "ImpactResult", "SensorSpec", "Spread", "Trend", "UnitResult", "parse_sensors", "run_impact",
         ],

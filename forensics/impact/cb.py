@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -85,6 +85,10 @@ class CbTemplate:
     @property
     def n_cells(self) -> int:
         return int(self.levels.size)
+
+    def code_only(self) -> CbTemplate:
+        """The levels and validity without the segmentation: all that the comparison reads."""
+        return replace(self, segmentation=None)
 
 
 def cell_levels(enhanced: np.ndarray, cell: tuple[int, int], n_levels: int = 3) -> np.ndarray:

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -59,6 +59,10 @@ class DctTemplate:
     codes: tuple[tuple[IrisCode, ...], ...]
     offsets: tuple[int, ...]
     segmentation: Segmentation | None = None
+
+    def code_only(self) -> DctTemplate:
+        """The planes and offsets without any segmentation: all that the comparison reads."""
+        return replace(self, codes=tuple(tuple(c.code_only() for c in row) for row in self.codes), segmentation=None)
 
 
 def _hann(n: int) -> np.ndarray:

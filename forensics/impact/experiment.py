@@ -82,9 +82,9 @@ from forensics.impact.reuse import (
     encode_reusing,
     fill_pairs,
     fill_upper,
+    score_digest,
     segment_reusing,
     step_segmenters,
-    template_digest,
 )
 from forensics.io.dataset import Dataset
 from forensics.sensor.model import SensorModel, load_model
@@ -510,13 +510,13 @@ def _score_cell(job: _ImpactJob, s_index: int, a_index: int, pairs: tuple[np.nda
         probe = templates[matcher.name]
         probe_failed = _failed(probe)
         names = tuple(Path(job.paths[k]).name for k in np.flatnonzero(probe_failed))
-        probe_digests = [template_digest(t) for t in probe] if job.reuse else None
+        probe_digests = [score_digest(matcher, t) for t in probe] if job.reuse else None
         made: list[ScoredPairs] = []
         for protocol in job.protocols:
             gallery = probe if protocol == "same-age" else enrol[matcher.name]
             keep = ~(_failed(gallery)[i] | probe_failed[j])
             if job.reuse:
-                gallery_digests = probe_digests if gallery is probe else [template_digest(t) for t in gallery]
+                gallery_digests = probe_digests if gallery is probe else [score_digest(matcher, t) for t in gallery]
                 scores, done = _reused_scores(matcher, gallery, probe, gallery_digests, probe_digests, pairs,
                                               [*bases.get(matcher.name, ()), *made])
                 scores.flags.writeable = False   # kept for later ages (and maybe shared): nothing may alter it

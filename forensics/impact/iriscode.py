@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -68,6 +68,12 @@ class IrisCode:
         n = self.bits_per_column
         return (np.unpackbits(self.bits, axis=1, count=n).astype(bool),
                 np.unpackbits(self.mask, axis=1, count=n).astype(bool))
+
+    def code_only(self) -> IrisCode:
+        """The code without the segmentation it carries: all that a comparison reads (the experiment handles a
+        failed segmentation apart from the scores), so two codes equal here get equal scores from every
+        comparator in this module."""
+        return replace(self, segmentation=None)
 
     def shifted(self, s: int) -> IrisCode:
         """The code with its angle rolled by ``s`` columns (what rotating the eye by ``s`` columns gives)."""

@@ -9,10 +9,12 @@ recomputed.
 
 Exact by construction: a template's digest (:func:`template_digest`) is the SHA-256 of its complete content —
 every array's dtype, shape, strides and bytes, every scalar's type and exact value, every field of a
-dataclass (the segmentation an :class:`~forensics.impact.iriscode.IrisCode` carries included), recursively.
-A score is copied only where *both* digests equal those of the already-scored pair at the same position; a
-template of a type the digest does not know (a user's class that is not a dataclass, say) has no digest, and
-every pair involving it is computed.
+dataclass, recursively.  The scores are keyed by :func:`score_digest`: the digest of what the comparison
+reads — for a user's matcher the whole template, for a built-in its code without the segmentation it carries
+(no built-in comparator reads it; a failed segmentation is handled apart from the scores, from the templates
+of the age being scored).  A score is copied only where *both* digests equal those of the already-scored pair
+at the same position; a template of a type the digest does not know (a user's class that is not a dataclass,
+say) has no digest, and every pair involving it is computed.
 
 :class:`ScoredPairs` keeps one protocol's scores with the digests of its gallery and probe templates;
 :func:`best_base` picks the stored scores that leave the fewest pairs to compute; :func:`fill_upper` and
@@ -49,7 +51,7 @@ from forensics.impact.segment.normalise import footprint
 from forensics.impact.segment.segmenter import Segmenter
 
 __all__ = ["ScoredPairs", "band_encoder", "band_untouched", "best_base", "encode_reusing", "fill_pairs", "fill_upper",
-           "segment_reusing", "step_segmenters", "template_digest", "unchanged", "upper_blocks",
+           "score_digest", "segment_reusing", "step_segmenters", "template_digest", "unchanged", "upper_blocks",
            "upper_entries_computed"]
 
 
@@ -57,7 +59,7 @@ __all__ = ["ScoredPairs", "band_encoder", "band_untouched", "best_base", "encode
 class ScoredPairs:
     """The scores of the run's pairs ``(gallery[i], probe[j])`` with the digests of the templates compared.
 
-    ``gallery`` and ``probe`` hold :func:`template_digest` of every template (None: no digest, never reused);
+    ``gallery`` and ``probe`` hold :func:`score_digest` of every template (None: no digest, never reused);
     ``scores`` the float64 scores of the run's pairs, in the run's pair order.
     """
 
@@ -76,6 +78,22 @@ def template_digest(template: Any) -> bytes | None:
     deterministic comparator gives them the same score.
     """
     return content_digest(template)
+
+
+def score_digest(matcher: Any, template: Any) -> bytes | None:
+    """:func:`template_digest` of what ``matcher``'s comparison reads of ``template``: for a built-in
+    (:func:`band_encoder`) the code alone (``template.code_only()``), for any other matcher the whole template.
+
+    A built-in template also carries the segmentation it was encoded with, which its comparators never read
+    (a failed segmentation is handled by the experiment apart from the scores).  A new defect often moves only
+    that segmentation's edge support (``quality``) and leaves the code byte for byte as it was; keyed by the
+    code, such a template keeps its pairs' scores.
+    """
+    if band_encoder(matcher):
+        code_only = getattr(template, "code_only", None)
+        if callable(code_only):
+            return template_digest(code_only())
+    return template_digest(template)
 
 
 def band_encoder(matcher: Any) -> bool:

@@ -18,7 +18,8 @@ from forensics.impact.experiment import parse_sensors, run_impact
 from forensics.impact.masek import MasekMatcher
 from forensics.impact.matchers import ExternalMatcher, load_matchers
 from forensics._shared.digest import content_digest
-from forensics.impact.reuse import band_encoder, encode_reusing, template_digest
+from forensics.impact.matchers import compare_all
+from forensics.impact.reuse import band_encoder, encode_reusing, score_digest, template_digest
 from forensics.impact.segment.normalise import footprint
 from forensics.io.dataset import open_dataset
 
@@ -91,6 +92,32 @@ def test_a_band_whose_pixels_and_segmentation_are_unchanged_is_not_even_unwrappe
     # A changed pixel in the box: unwrapped and encoded anew, equal to a fresh encoding.
     changed = encode_reusing(matcher, inside, (key, template), image)
     assert not changed[2] and template_digest(changed[1]) == want_inside
+
+
+def _with_quality(template, quality):
+    """The template with its segmentation's edge support (and every nested code's) set to ``quality``."""
+    seg = dataclasses.replace(template.segmentation, quality=quality)
+    codes = getattr(template, "codes", None)
+    if codes is not None:       # dct: the planes carry the segmentation too
+        codes = tuple(tuple(dataclasses.replace(c, segmentation=seg) for c in row) for row in codes)
+        return dataclasses.replace(template, codes=codes, segmentation=seg)
+    return dataclasses.replace(template, segmentation=seg)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_scores_are_keyed_by_the_code_alone_for_the_built_ins(captures, name):
+    # A new defect often moves only the segmentation's edge support and leaves the code as it was: such a template
+    # keeps its scores (score_digest), and every comparison indeed gives the same numbers for it.
+    (matcher,) = load_matchers([name])
+    templates = [matcher.encode(captures[e, c]) for e in range(3) for c in range(2)]
+    moved = _with_quality(templates[0], templates[0].segmentation.quality / 2)
+    assert template_digest(moved) != template_digest(templates[0])
+    assert score_digest(matcher, moved) == score_digest(matcher, templates[0])
+    want = compare_all(matcher, templates, templates)
+    assert np.array_equal(compare_all(matcher, [moved, *templates[1:]], [moved, *templates[1:]]), want)
+    # Another code is another key; a user's matcher is keyed by the whole template.
+    assert len({score_digest(matcher, t) for t in templates}) == len(templates)
+    assert score_digest(Subclass(), moved) == template_digest(moved) != template_digest(templates[0])
 
 
 def test_a_subclass_encodes_every_image(captures):
