@@ -222,3 +222,21 @@ def test_noise_sources_see_the_noiseless_signal(order):
                            for i in range(40)])
         # 64²·39 df: relative SE of the mean variance ≈ 0.0035; the bug this guards against added 0.96 DN² (11 %)
         assert frames.var(axis=0, ddof=1).mean() == pytest.approx(expected, rel=0.02)
+
+
+class _Dither(Effect):
+    """A user's effect that draws in the mean signal's stages (the mean then takes the seed-0 stream)."""
+
+    name, stage = "dither", Stage.GAIN
+
+    def apply(self, signal, ctx, rng):
+        return signal + rng.standard_normal(signal.shape)
+
+
+def test_the_mean_signal_gives_a_drawing_effect_the_seed_zero_stream():
+    # The mean signal makes its generator only when an effect uses it (the built-ins never do); one that does sees
+    # exactly np.random.default_rng(0), as it always has.
+    dev = SensorModel(SHAPE, bit_depth=16, effects=[_Dither()]).realize(np.random.default_rng(3), [0.0])
+    light = np.full(SHAPE, 10.0)
+    want = light + np.random.default_rng(0).standard_normal(SHAPE)
+    np.testing.assert_array_equal(dev.mean_signal(light, dev.context(0.0)), want)
