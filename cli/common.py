@@ -44,11 +44,12 @@ def add_output_options(parser: argparse.ArgumentParser, report: bool = True) -> 
     group.add_argument("--force", action="store_true", help="replace existing outputs")
 
 
-def add_execution_options(parser: argparse.ArgumentParser) -> None:
-    """Add ``--workers N`` and ``--scheduler ADDRESS`` (the execution layer, :mod:`forensics._shared.parallel`)."""
+def add_execution_options(parser: argparse.ArgumentParser, default: str = "every core") -> None:
+    """Add ``--workers N`` and ``--scheduler ADDRESS`` (the execution layer, :mod:`forensics._shared.parallel`);
+    ``default`` says what the command does without ``--workers``."""
     group = parser.add_argument_group("execution")
     group.add_argument("--workers", type=positive_int, default=None, metavar="N",
-                       help="worker processes (default: every core; 1 runs everything in this process)")
+                       help=f"worker processes (default: {default}; 1 runs everything in this process)")
     group.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run on a Dask cluster: its scheduler address (tcp://host:8786), or 'local' for a "
                             "cluster on this machine (default: $FORENSICS_SCHEDULER, else local processes)")
@@ -207,11 +208,12 @@ def open_input(args: argparse.Namespace, folder: Any) -> Any:
 
 
 @contextlib.contextmanager
-def executor_for(args: argparse.Namespace) -> Iterator[Any]:
-    """The command's one executor (``--workers``, ``--scheduler``); prints the Dask dashboard when a cluster is used."""
+def executor_for(args: argparse.Namespace, small: bool = False) -> Iterator[Any]:
+    """The command's one executor (``--workers``, ``--scheduler``; ``small``: without ``--workers``, this process —
+    see :func:`~forensics._shared.parallel.open_executor`); prints the Dask dashboard when a cluster is used."""
     from forensics._shared.parallel import open_executor
 
-    with open_executor(getattr(args, "workers", None), getattr(args, "scheduler", None)) as executor:
+    with open_executor(getattr(args, "workers", None), getattr(args, "scheduler", None), small=small) as executor:
         if executor.backend == "dask":
             run = executor.info()
             info(args, f"Dask cluster {run.scheduler} ({run.workers} workers); dashboard: {run.dashboard}")

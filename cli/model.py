@@ -76,7 +76,7 @@ def register(sub) -> None:
                        help="with --tiles: where the frames are decoded once for the tiles (default the system's "
                             "temporary directory; removed afterwards; needs room for every frame decoded)")
     add_input_options(check)
-    add_execution_options(check)
+    add_execution_options(check, default="every core, or this process for a check of fewer than 10 M pixel-frames")
     add_output_options(check)
     check.set_defaults(handler=run_check, inputs=("data", "--add"), outputs=("--report",))
     parser.set_defaults(handler=lambda args: parser.print_help() or 2)
@@ -139,7 +139,7 @@ def run_check(args: argparse.Namespace) -> int:
     ds = open_input(args, args.data)
     region = parse_region(args.region, ds)
     advise_tiles(args, ds, region)
-    with executor_for(args) as ex:
+    with executor_for(args, small=too_small_for_workers(ds, region)) as ex:
         result = check(ds, add=args.add, rng=args.seed, progress=progress_for(args), region=region, executor=ex)
         execution = ex.info()
     if args.report:
@@ -157,7 +157,7 @@ def _run_auto(args: argparse.Namespace) -> int:
     ds = open_input(args, args.data)
     region = parse_region(args.region, ds)
     advise_tiles(args, ds, region)
-    with executor_for(args) as ex:
+    with executor_for(args, small=too_small_for_workers(ds, region)) as ex:
         sel = check_auto(ds, add=args.add, rng=args.seed, **max_steps(args),
                          progress=progress_for(args), region=region, executor=ex)
         execution = ex.info()
@@ -270,6 +270,19 @@ def advise_tiles(args: argparse.Namespace, ds: Any, region: tuple[int, int, int,
     advice = whole_frame_advice(int(h) * int(w), len(ds.frames))
     if advice:
         info(args, f"note: {advice}")
+
+
+#: Pixel-frames (pixels of the checked region × frames) below which the check runs in one process unless
+#: ``--workers`` says otherwise.  Its parallel parts (reading the frames, the pixel blocks) do not repay starting
+#: worker processes (≈ 0.7 s) on small data: the EMVA 1288 standard series (7.4 M pixel-frames) took 41.2 s on
+#: one process and 41.9 s on two, a 128² hidden-effect dataset (1.8 M) 5.4 and 6.1 s (``benchmarks/RESULTS_check.md``).
+POOL_MIN_PIXEL_FRAMES = 10_000_000
+
+
+def too_small_for_workers(ds: Any, region: tuple[int, int, int, int] | None) -> bool:
+    """Whether the check of ``ds`` (or of ``region``) is below :data:`POOL_MIN_PIXEL_FRAMES`."""
+    h, w = ds.shape() if region is None else region[2:]
+    return int(h) * int(w) * len(ds.frames) < POOL_MIN_PIXEL_FRAMES
 
 
 def parse_region(spec: str | None, ds: Any) -> tuple[int, int, int, int] | None:

@@ -538,17 +538,19 @@ def start_local_cluster(workers: int = 2) -> Any:
 
 
 def open_executor(workers: int | None = None, scheduler: str | None = None, *, default_backend: str = "processes",
-                  environ: dict[str, str] | None = None, retries: int = 3) -> Executor:
+                  environ: dict[str, str] | None = None, retries: int = 3, small: bool = False) -> Executor:
     """The executor a command asked for.
 
     ``scheduler`` (or ``FORENSICS_SCHEDULER`` in ``environ``) selects Dask; otherwise ``workers`` local
-    processes (default: every available core), or in-process with ``workers=1``.
+    processes (default: every available core), or in-process with ``workers=1``.  ``small``: the command's
+    work is too small to pay for starting worker processes, so without an explicit ``workers`` it runs in this
+    process (an explicit count is always obeyed).
     """
     environ = os.environ if environ is None else environ
     scheduler = scheduler or environ.get(SCHEDULER_ENV) or None
     if scheduler:
         return Executor("dask", workers=workers or available_cores(), scheduler=scheduler, retries=retries)
-    n = available_cores() if workers is None else workers
+    n = (1 if small else available_cores()) if workers is None else workers
     if n < 1:
         raise UsageError(f"--workers must be at least 1, not {n}")
     backend = default_backend if n > 1 else "in-process"

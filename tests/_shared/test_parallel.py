@@ -79,3 +79,11 @@ def test_dask_cluster_matches_in_process(dask_cluster):
         pids = set(ex.map(workitems.worker_pid, range(40)))
         assert ex.info().dashboard
     assert len(pids) == 2  # both workers took part
+
+
+def test_small_work_runs_in_process_unless_workers_are_given():
+    from forensics._shared.parallel import open_executor
+
+    assert open_executor(None, small=True, environ={}).backend == "in-process"
+    assert open_executor(2, small=True, environ={}).backend == "processes"
+    assert open_executor(1, small=False, environ={}).backend == "in-process"

@@ -60,6 +60,9 @@ def test_check_json_keys_and_named_effect(data, capsys):
     first = out["candidates"][0]
     assert first["effect"] == "nonlinearity" and first["flagged"] is True
     assert {"effect", "delta_bic", "p", "flagged"} <= set(first)
+    # A 128² dataset of 108 frames is far below the pixel-frames that repay starting worker processes: without
+    # --workers the check runs in this process; an explicit count is obeyed.
+    assert out["execution"]["backend"] == "in-process"
 
 
 def test_check_human_output_with_add_and_report(data, tmp_path, capsys):
