@@ -90,7 +90,8 @@ def _time_rows(codes: Sequence[IrisCode], layout: tuple[np.ndarray, np.ndarray, 
     if side == "a":
         return np.concatenate([bits, group_mask], axis=2).transpose(1, 0, 2).astype(np.float64, order="C")
     # Written straight into the (columns, rows, n) layout; the group sums as one product with the groups'
-    # indicator matrix (small integers: exact in float64), three times faster than a reduceat over the bits.
+    # indicator matrix (small integers: exact in float64): 0.42 ms per cr template against 0.67 for a reduceat
+    # over the reordered bits and a transposing copy.
     n, columns, n_bits = bits.shape
     n_groups = sizes.size
     indicator = np.zeros((n_bits, n_groups))
