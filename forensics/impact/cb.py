@@ -250,8 +250,9 @@ class CbMatcher:
         :data:`UNCOMPARABLE`.
     block_bytes
         Working memory per block of pairs (about 20 bytes per cell and pair).  The default keeps a block's
-        arrays within a core's cache (measured on 280 × 1,120 real templates, ``benchmarks/RESULTS_impact.md``:
-        7.4 µs per pair at 4 MiB against 10 µs at 32 MiB, whose arrays spill to memory).
+        arrays within a core's cache (measured on 280 × 1,120 real templates, ``benchmarks/bench_compare_block.py``:
+        7.2 µs per pair at 4 MiB against 8.7 µs at 32 MiB, whose arrays spill to memory — 17–20 µs in a fresh
+        process, where they are new pages).
     """
 
     name: ClassVar[str] = "cb"
