@@ -22,7 +22,7 @@ from forensics.check.identifiability import bounded_step, estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
 from forensics.check.prediction import SCENE_SHIFT
-from forensics.check.pixels import PixelData, VarianceBins, pattern_size, with_latent_spread
+from forensics.check.pixels import PixelData, VarianceBins, log_variance, pattern_size, with_latent_spread
 from forensics.check.prediction import predicted_variance
 from forensics.check.joint_solve import coupled_shrink
 from forensics.check.local_solve import PixelProjector, shrink_local
@@ -592,7 +592,7 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
     """
     free = [(j, n) for j, e in enumerate(noise) for n in e.free_params()]
     params: list[ParamEstimate] = []
-    y = np.log(bins.observed)
+    y = log_variance(bins.observed, bins.df)
     w = bins.df / 2.0
     jac = None
 

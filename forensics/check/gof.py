@@ -16,7 +16,7 @@ from forensics.check.classes import CLASSES, NORMAL, PART, QUANT_VAR, STK, dark_
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
 from forensics.check.result import CheckRow
-from forensics.check.pixels import uses_scene
+from forensics.check.pixels import log_variance, uses_scene
 from forensics.check.scene import KERNEL_VAR
 from forensics.sensor.catalogue import PARTIAL
 from forensics.stats.counts import laplace_trend_z, poisson_deviance
@@ -173,7 +173,7 @@ def variance_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, float
     px = fitted.pixels
     if not len(px.bins.observed):
         return None, None, rows
-    e = np.log(px.bins.observed) - np.log(fitted.variance_pred)
+    e = log_variance(px.bins.observed, px.bins.df) - np.log(fitted.variance_pred)
     w = px.bins.df / 2.0
     q = 0 if fitted.variance_jac is None else fitted.variance_jac.shape[0]
     chi = float(np.sum(w * e * e))

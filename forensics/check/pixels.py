@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import ndimage, signal, special
 
 from forensics.check.classes import NORMAL, PART, QUANT_VAR, STK, class_maps, dark_groups
 from forensics.check.measurements import Group, Measurements
@@ -84,6 +84,27 @@ class VarianceBins:
         total = np.bincount(lab[m], np.broadcast_to(values, lab.shape)[m], minlength=len(self.group))
         count = np.bincount(lab[m], minlength=len(self.group))
         return total[idx] / np.maximum(count[idx], 1)
+
+
+def log_variance(observed: np.ndarray, df: np.ndarray) -> np.ndarray:
+    """ln of binned variances less the bias of the log of a sample variance: a bin's variance pools its pixels'
+    ``df`` degrees of freedom, σ²·χ²_ν/ν with ν = ``df``, and E[ln s²] = ln σ² + ψ(ν/2) − ln(ν/2) (Bartlett & Kendall
+    1946, whose variance of ln s², ≈ 2/ν, already weighs the bins: ``df / 2``).
+
+    Why: fitted in logs without it, every bin's variance reads low by ≈ 1/ν, a scale the noise law's parameters
+    take up (on EMVA 1288 series of 48 × 64 pixels, ν ≈ 400–4,000 per bin: −0.08 % on average, −0.26 % in the
+    smallest bins; ``benchmarks/grid_emva_standard.py``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> s2 = rng.chisquare(10, 200_000) / 10          # sample variances of σ² = 1 with ν = 10
+    >>> round(float(np.mean(np.log(s2))), 2), round(float(np.mean(log_variance(s2, np.full(s2.size, 10.0)))), 2)
+    (-0.1, 0.0)
+    """
+    nu = np.asarray(df, float)
+    return np.log(observed) - (special.digamma(nu / 2.0) - np.log(nu / 2.0))
 
 
 def with_latent_spread(bins: VarianceBins, latent: np.ndarray) -> VarianceBins:
@@ -275,6 +296,11 @@ def uses_scene(classes: np.ndarray, rgroups: Sequence[Group]) -> np.ndarray:
 #: A condition in which more than this share of the interior's normal pixels touched 0 or full scale in some
 #: frame is near a bound: the normal pixels left there are a truncated sample.
 NEAR_BOUND_SHARE = 0.01
+#: A condition with light in which more than this share of the normal pixels touched a bound has no variance bin
+#: (:func:`variance_bins`): its scene estimate, an average of clipped readouts, is off the latent level by
+#: σ·(φ(a) − a·p) for a share p of readouts beyond a bound a σ away — 0.02 σ at p = 5 % (10 % of the pixels of two
+#: frames: a truncated variance off by ≈ 0.6 %), 0.4 σ at p = 50 % (30 % seen at K = 2 DN/e⁻).
+LIGHT_BOUND_SHARE = 0.10
 
 
 def near_bound_conditions(meas: Measurements, usable: np.ndarray, classes: np.ndarray,
@@ -394,14 +420,17 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     A condition in which more than ``near_fraction`` of the normal pixels touched 0 or the full scale in some
     frame (those are not usable) is near a bound: there a pixel's own mean and its temporal variance are
     correlated (the readout's noise is skewed by the bound), so binning on the pixel's own mean would select on
-    its variance.  Such a condition is pooled into one bin, whose ``spread`` holds its pixels' scene levels
-    (from the neighbours, not the pixel itself) at ``n_spread`` quantiles for the prediction near the bound.
+    its variance.  Such a dark condition is pooled into one bin, whose ``spread`` holds its pixels' scene levels
+    (from the neighbours, not the pixel itself) at ``n_spread`` quantiles for the prediction near the bound; a
+    condition with light in which more than :data:`LIGHT_BOUND_SHARE` of them did has no bin (its latent level is
+    not known there: the scene estimate averages clipped readouts).
     """
     rows = []
     spread = []
     qs = (np.arange(n_spread) + 0.5) / n_spread
     labels = np.full(usable.shape, -1, np.int16 if n_bins * len(rgroups) < 2**15 else np.int32)
     near_rows = near_bound_conditions(meas, usable, classes, near_fraction)
+    clipped_rows = near_bound_conditions(meas, usable, classes, LIGHT_BOUND_SHARE)
     dark = dark_groups(rgroups)
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
@@ -410,6 +439,14 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
         lev = meas.mean_all[g.index][m]
         v = meas.var_all[g.index][m] - level_changes(meas, g)
         near = scene is not None and bool(near_rows[r])
+        if near and not dark[r] and clipped_rows[r]:
+            # a frame with light far into a bound has no bin: its pixels' latent level comes from the neighbours'
+            # scene estimate, an average of readouts the bound clipped (58 % of them at 4095 DN: 37 DN below the
+            # latent level), and the truncated variance it predicts is steep in that level.  On EMVA 1288 series at
+            # K = 2 DN/e⁻ such a bin read 30 % below its prediction (z −4) and pulled K down by 0.5 standard
+            # errors; EMVA 1288 itself leaves saturated points out of the photon transfer
+            # (benchmarks/grid_emva_standard.py)
+            continue
         if near:
             # the readout near a bound is far from normal (mostly one or two levels): the bin's weight is the
             # df of a χ² with the spread of its pixels' variances, not the normal theory's

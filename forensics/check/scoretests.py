@@ -20,7 +20,7 @@ from forensics.check.streams import PATTERN_SIZE_STREAM
 from forensics.check.classes import NORMAL, STK
 from forensics.check.evidence import Evidence
 from forensics.check.fit import FittedModel
-from forensics.check.pixels import pattern_size
+from forensics.check.pixels import log_variance, pattern_size
 from forensics.check.result import ChannelTest
 from forensics.check.signatures import Signature
 
@@ -330,7 +330,7 @@ def score_variance(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> 
     sigs = [s for s in sigs if float((s.x * w) @ s.x) > 0]  # no signature in these data
     if not sigs or not len(px.bins.observed):
         return []
-    e = np.log(px.bins.observed) - np.log(fitted.variance_pred)
+    e = log_variance(px.bins.observed, px.bins.df) - np.log(fitted.variance_pred)
     X = np.array([s.x for s in sigs])
     P = X
     if fitted.variance_jac is not None:

@@ -13,6 +13,7 @@ import numpy as np
 from scipy import stats
 
 from forensics.check.diagnosis import FLAG_DBIC
+from forensics.check.pixels import log_variance
 from forensics.check.scoretests import ABSORBED_SHARE, score_variance
 from forensics.check.signatures import Signature
 
@@ -54,7 +55,7 @@ def test_a_signature_that_leaves_the_span_is_tested_on_what_survives():
     (test,) = score_variance(None, fitted, [Signature("variance", "shot_noise.g", shot)])
     assert not test.absorbed and test.df == 1
     w = fitted.pixels.bins.df / 2
-    e = np.log(fitted.pixels.bins.observed) - np.log(fitted.variance_pred)
+    e = log_variance(fitted.pixels.bins.observed, fitted.pixels.bins.df) - np.log(fitted.variance_pred)
     j = fitted.variance_jac[0]
     p = shot - (j * w @ shot) / (j * w @ j) * j
     assert (p * w @ p) / (shot * w @ shot) >= ABSORBED_SHARE
