@@ -420,10 +420,10 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     A condition in which more than ``near_fraction`` of the normal pixels touched 0 or the full scale in some
     frame (those are not usable) is near a bound: there a pixel's own mean and its temporal variance are
     correlated (the readout's noise is skewed by the bound), so binning on the pixel's own mean would select on
-    its variance.  Such a dark condition is pooled into one bin, whose ``spread`` holds its pixels' scene levels
-    (from the neighbours, not the pixel itself) at ``n_spread`` quantiles for the prediction near the bound; a
-    condition with light in which more than :data:`LIGHT_BOUND_SHARE` of them did has no bin (its latent level is
-    not known there: the scene estimate averages clipped readouts).
+    its variance.  Such a condition is pooled into one bin, whose ``spread`` holds its pixels' scene levels (from
+    the neighbours, not the pixel itself) at ``n_spread`` quantiles for the prediction near the bound — except a
+    condition with light in which more than :data:`LIGHT_BOUND_SHARE` of them did, which has no bin (its latent
+    level is not known there: the scene estimate averages clipped readouts).
     """
     rows = []
     spread = []
