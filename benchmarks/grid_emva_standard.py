@@ -37,7 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_check_emva import emva_analysis, fmt, forensics_auto, param  # noqa: E402
+from bench_check_emva import (dark_reference, emva_analysis, fmt, forensics_auto, our_quantities, param,  # noqa: E402
+                              their_quantities)
 
 #: The series' design besides the grid's variables (the test's small frames: 40 frames of 48 × 64).
 SHAPE, STEPS, SPATIAL = (48, 64), 8, 4
@@ -73,6 +74,10 @@ def run_cell(work: Path, bits: int, gain: float, offset: str, seed: int, emva_py
     if result is None:
         return {**row, "converged": False, "added": [], "flagged": None, "K": None, "K_se": None, "covered": False,
                 "stopped": f"no result (exit {ours['rc']}): {ours['stderr'].strip().splitlines()[-1:]}"}
+    ours_q = our_quantities(result, series.temperature_c, dark_reference(folder))
+    theirs_q = their_quantities(theirs["result"]) if theirs else {}
+    row["quantities"] = {name: {"ours": ours_q[name][0], "se": ours_q[name][1], "theirs": theirs_q.get(name)}
+                         for name in ("sigma_y_dark", "dark_current_DN_s")}
     k, k_se = param(result, "shot_noise.g")
     covered = k is not None and k_se is not None and abs(k - truth["K"]) <= 1.96 * k_se
     converged = all(p.get("converged", True) for p in result.get("params", []))
@@ -106,6 +111,13 @@ def report(rows: list[dict]) -> None:
     if ratios:
         print(f"\nwhole processes, ours / emva1288's: median {ratios[len(ratios) // 2]:.1f}×, largest {ratios[-1]:.1f}× "
               f"({len(ratios)} series)")
+    for name, unit in (("sigma_y_dark", "DN"), ("dark_current_DN_s", "DN/s")):
+        pairs = [(q["ours"], q["theirs"]) for r in rows for q in [r.get("quantities", {}).get(name, {})]
+                 if q.get("ours") is not None and q.get("theirs")]
+        if pairs:
+            rel = sorted(o / t - 1 for o, t in pairs)
+            print(f"{name} ({unit}), ours against emva1288's: median {100 * rel[len(rel) // 2]:+.1f} %, middle 90 % "
+                  f"{100 * rel[len(rel) // 20]:+.1f} … {100 * rel[-1 - len(rel) // 20]:+.1f} % ({len(rel)} series)")
     cov = sum(r["covered"] for r in rows)
     print(f"\nK's 95 % interval holds the simulator's K in {cov} of {n} runs ({100 * cov / n:.1f} %; "
           f"binomial SE {100 * math.sqrt(0.95 * 0.05 / n):.1f} points)")
