@@ -122,3 +122,17 @@ def test_a_flat_the_converter_clipped_has_no_variance_bin(tmp_path):
     brightest = max(flats, key=lambda r: ev.rgroups[r].exposure_s)
     assert brightest not in binned and set(flats) - {brightest} <= binned
     check_standard(folder, replace(series, K=json.loads((folder / "truth.json").read_text())["K"]))
+
+
+#: Two cells of ``benchmarks/grid_emva_standard.py`` beyond K = 0.1 at the generator's own offset: a 1 % pedestal at
+#: 10 bits and K = 0.5, and K = 2 at 8 bits on a black offset of 0 DN (the dark frames' readouts at the 0-DN bound)
+OTHER_CAMERAS = {"10 bit, K 0.5, pedestal": (StandardSeries(shape=(48, 64), steps=8, spatial=4, bit_depth=10, K=0.5,
+                                                            blackoffset=0.01 * 1023), 4),
+                 "8 bit, K 2, offset 0": (StandardSeries(shape=(48, 64), steps=8, spatial=4, bit_depth=8, K=2.0), 2)}
+
+
+@pytest.mark.parametrize("camera", sorted(OTHER_CAMERAS))
+def test_auto_on_other_gains_and_offsets(tmp_path, camera):
+    series, seed = OTHER_CAMERAS[camera]
+    folder = make_standard_series(tmp_path / "series", seed, series)
+    check_standard(folder, replace(series, K=json.loads((folder / "truth.json").read_text())["K"]))
