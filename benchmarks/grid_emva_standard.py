@@ -21,6 +21,7 @@ Usage::
 
     .venv/bin/python benchmarks/grid_emva_standard.py --seeds 5 --work /tmp/grid --json /tmp/grid.json
     .venv/bin/python benchmarks/grid_emva_standard.py --bits 8 12 --gains 0.1 --offsets own --seeds 2
+    .venv/bin/python benchmarks/grid_emva_standard.py --no-dither --bits 8 12 --gains 0.1 0.5 --offsets own --seeds 2
 """
 from __future__ import annotations
 
@@ -53,13 +54,13 @@ def offset_dn(name: str, bits: int) -> float | None:
 
 
 def run_cell(work: Path, bits: int, gain: float, offset: str, seed: int, emva_python: str | None,
-             timeout: float) -> dict:
+             timeout: float, dither: bool = True) -> dict:
     """Write one series, check it, analyse it with emva1288; the criteria and figures of the run."""
     from forensics.fixtures.emva import StandardSeries, make_standard_series
 
     series = replace(StandardSeries(), shape=SHAPE, steps=STEPS, spatial=SPATIAL, bit_depth=bits, K=gain,
-                     blackoffset=offset_dn(offset, bits))
-    folder = work / f"b{bits}-K{gain:g}-{offset}-s{seed}"
+                     blackoffset=offset_dn(offset, bits), dither=dither)
+    folder = work / f"b{bits}-K{gain:g}-{offset}-s{seed}{'' if dither else '-nodither'}"
     if not (folder / "truth.json").exists():
         make_standard_series(folder, seed, series, force=True)
     truth = json.loads((folder / "truth.json").read_text())
@@ -140,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2, help="series checked at once (one process each)")
     parser.add_argument("--emva-python", default="/work/venv-emva/bin/python",
                         help="Python of an environment with emva1288 and NumPy < 2 ('' to skip its analysis)")
+    parser.add_argument("--no-dither", action="store_true",
+                        help="round the frames without the simulator's dither (a converter that does not dither)")
     parser.add_argument("--timeout", type=float, default=600.0)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
@@ -149,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
     cells = list(itertools.product(args.bits, args.gains, args.offsets, range(1, args.seeds + 1)))
     with ThreadPoolExecutor(args.workers) as pool:
-        rows = list(pool.map(lambda c: run_cell(args.work, *c, emva, args.timeout), cells))
+        rows = list(pool.map(lambda c: run_cell(args.work, *c, emva, args.timeout, not args.no_dither), cells))
     report(rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
