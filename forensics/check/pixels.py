@@ -307,9 +307,14 @@ def near_bound_conditions(meas: Measurements, usable: np.ndarray, classes: np.nd
                           share: float = NEAR_BOUND_SHARE) -> np.ndarray:
     """Per repeated condition: whether more than ``share`` of its interior normal pixels are not usable (their
     readout touched 0 or full scale)."""
+    bad, normal = bound_counts(meas, usable, classes)
+    return bad > share * normal
+
+
+def bound_counts(meas: Measurements, usable: np.ndarray, classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per repeated condition: how many interior normal pixels are not usable, and how many there are (at least 1)."""
     normal = meas.interior[None] & (classes == NORMAL)
-    bad = (normal & ~usable).sum(axis=(1, 2))
-    return bad > share * np.maximum(normal.sum(axis=(1, 2)), 1)
+    return (normal & ~usable).sum(axis=(1, 2)), np.maximum(normal.sum(axis=(1, 2)), 1)
 
 
 def _pooled_law(level: np.ndarray, var: np.ndarray, mask: np.ndarray, pools: Sequence[Any],
@@ -429,8 +434,8 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     spread = []
     qs = (np.arange(n_spread) + 0.5) / n_spread
     labels = np.full(usable.shape, -1, np.int16 if n_bins * len(rgroups) < 2**15 else np.int32)
-    near_rows = near_bound_conditions(meas, usable, classes, near_fraction)
-    clipped_rows = near_bound_conditions(meas, usable, classes, LIGHT_BOUND_SHARE)
+    bad, normal = bound_counts(meas, usable, classes)
+    near_rows, clipped_rows = bad > near_fraction * normal, bad > LIGHT_BOUND_SHARE * normal
     dark = dark_groups(rgroups)
     for r, g in enumerate(rgroups):
         m = usable[r] & (classes[r] == NORMAL)
