@@ -168,7 +168,8 @@ def dark_reference(folder: Path) -> float:
 def our_quantities(result: dict | None, temperature_c: float, t_ref: float = 25.0
                    ) -> dict[str, tuple[float | None, float | None]]:
     """The check's estimates of what emva1288 reports, in emva1288's units: K (DN/e⁻) = shot_noise.g; the dark
-    noise σ_y.dark (DN) = √(read² + input² + 1/12); DSNU (DN) and PRNU (%) = the patterns' sizes as the frames
+    noise σ_y.dark (DN) = √(read² + input² + 1/12 + d²/12), d the converter's dither the check found (the read noise
+    is then the noise before it); DSNU (DN) and PRNU (%) = the patterns' sizes as the frames
     show them; the dark current (DN/s) at the series' temperature from the fitted rate at ``t_ref``
     (:func:`dark_reference`; this script took 25 °C until the sixteenth session, but on the standard series the fit
     refers its rate to the frames' 22 °C: the 1.107 DN/s it printed was that rate, 1.490, carried from 25 to 22 °C
@@ -178,7 +179,8 @@ def our_quantities(result: dict | None, temperature_c: float, t_ref: float = 25.
     inp, inp_se = param(result, "input_noise.sigma_in")
     noise = None
     if read is not None:
-        var = read**2 + (inp or 0.0) ** 2 + 1.0 / 12.0
+        dither = float(((result or {}).get("quantiser") or {}).get("dither", 0.0))
+        var = read**2 + (inp or 0.0) ** 2 + (1.0 + dither**2) / 12.0
         se = math.sqrt((read * (read_se or 0.0)) ** 2 + ((inp or 0.0) * (inp_se or 0.0)) ** 2) / math.sqrt(var)
         noise = (math.sqrt(var), se)
     dsnu = pattern(result, "dsnu")

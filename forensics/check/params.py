@@ -38,7 +38,8 @@ def with_clipped_param(effects: Sequence[Effect], index: int, name: str, value: 
 def on_device(device: Device, effects: Sequence[Effect]) -> Device:
     """A device for ``effects`` sharing ``device``'s times, catalogue and state."""
     model = device.model
-    return Device(model=SensorModel(shape=model.shape, bit_depth=model.bit_depth, effects=list(effects), t0=model.t0),
+    return Device(model=SensorModel(shape=model.shape, bit_depth=model.bit_depth, effects=list(effects), t0=model.t0,
+                                    dither=model.dither),
                   times=device.times, catalogue=device.catalogue, state=device.state)
 
 

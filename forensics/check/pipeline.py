@@ -152,6 +152,7 @@ def run_check(ev: Evidence, effects: Sequence[Effect], start: Mapping[str, float
         data=_data_summary(ev, fitted, shares),
         plots=_plot_data(ev, fitted, consistency, covariates, ripley),
         structure=residual_structure(ev, fitted),
+        quantiser=None if fitted.quantiser is None else fitted.quantiser.to_dict(),
     )
 
 

@@ -303,19 +303,20 @@ def readout_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: fl
     """The mean readout of pixels of latent mean ``mu`` over every frame, those at 0 or ``full_scale`` included:
     ``mu`` itself away from the bounds; within ``reach`` σ of one, the mean of the quantised, clipped readout."""
     return _near_bound_means(mu, ctx, full_scale, reach,
-                             lambda m, sd, hi: readout_moments(m, sd, 0, hi)[0])
+                             lambda m, sd, hi, dither: readout_moments(m, sd, 0, hi, dither=dither)[0])
 
 
 def _near_bound_means(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: float,
-                      bounded: Callable[[np.ndarray, np.ndarray, int], np.ndarray]) -> np.ndarray:
-    """``mu`` clipped to [0, ``full_scale``], and ``bounded(μ, σ, hi)`` within ``reach`` σ of a bound (σ from the
-    model's noise effects)."""
+                      bounded: Callable[[np.ndarray, np.ndarray, int, float], np.ndarray]) -> np.ndarray:
+    """``mu`` clipped to [0, ``full_scale``], and ``bounded(μ, σ, hi, dither)`` within ``reach`` σ (and the
+    dither's half-width) of a bound (σ from the model's noise effects, the dither from its quantiser)."""
     noise = [e for e in ctx.device.model.effects if e.stage == Stage.NOISE]
+    dither = ctx.device.model.dither
     out = np.clip(mu, 0.0, full_scale)
     hi = round(float(full_scale))
     elec = np.broadcast_to(ctx.electronic_offset, out.shape)
-    sd = np.sqrt(noise_variance(noise, out, ctx, elec) + QUANT_VAR)
-    near = (out < reach * sd + 1.0) | (out > hi - reach * sd - 1.0)
+    sd = np.sqrt(noise_variance(noise, out, ctx, elec) + quantiser_variance(dither))
+    near = (out < reach * sd + 1.0 + 0.5 * dither) | (out > hi - reach * sd - 1.0 - 0.5 * dither)
     if hi < 3 or not near.any():
         return out
     sigma = np.sqrt(noise_variance(noise, mu[near], ctx, elec[near]))
@@ -324,20 +325,26 @@ def _near_bound_means(mu: np.ndarray, ctx: FrameContext, full_scale: float, reac
         # a frame without pixel patterns (the base model, shot noise, dark current …): every pixel shares (μ, σ)
         # and one value serves them all — on the EMVA 1288 standard series, 40 % of the check's time went to
         # tabulating and interpolating the one value 76,800 times per condition
-        out[near] = bounded(m[:1], sigma[:1], hi)[0]
+        out[near] = bounded(m[:1], sigma[:1], hi, dither)[0]
         return out
-    out[near] = bounded(m, sigma, hi)
+    out[near] = bounded(m, sigma, hi, dither)
     return out
 
 
-def distinct_readout_means(mu: np.ndarray, sigma: np.ndarray, hi: int) -> np.ndarray:
+def quantiser_variance(dither: float) -> float:
+    """The variance the converter adds away from the bounds on average over the level's fractional part: the
+    rounding's 1/12 DN² and a uniform dither's d²/12."""
+    return QUANT_VAR * (1.0 + dither * dither)
+
+
+def distinct_readout_means(mu: np.ndarray, sigma: np.ndarray, hi: int, dither: float = 0.0) -> np.ndarray:
     """:func:`~forensics.stats.censored.readout_moments`' truncated mean, as cheaply as it holds
     (:func:`~forensics.stats.censored.truncated_readout_mean`), one bound at a time: a table across both would
     span the whole range."""
     out = np.empty(mu.shape)
     for side in (mu < 0.5 * hi, mu >= 0.5 * hi):
         if side.any():
-            out[side] = truncated_readout_mean(mu[side], sigma[side], 0, hi)
+            out[side] = truncated_readout_mean(mu[side], sigma[side], 0, hi, dither=dither)
     return out
 
 
@@ -345,16 +352,66 @@ def predicted_variance(bins: VarianceBins, rgroups: Sequence[Group], noise_effec
                        device: Device) -> np.ndarray:
     """The variance channel's forward model: predicted temporal variance of each variance bin (the quantisation
     variance plus every noise effect's; near the bounds, the clipped readout's — see :func:`near_bound`)."""
-    out = np.full(len(bins.level), QUANT_VAR)
+    dither = device.model.dither
+    noise = np.zeros(len(bins.level))
+    bounded = []
     for r in np.unique(bins.group):
         sel = bins.group == r
         ctx = context(device, rgroups[r])
         elec = bins.bin_means(r, ctx.electronic_offset)
-        out[sel] += noise_variance(noise_effects, bins.level[sel], ctx, elec)
+        noise[sel] = noise_variance(noise_effects, bins.level[sel], ctx, elec)
         if bins.spread is not None and bins.full_scale is not None:
-            at, variance = near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, elec)
-            out[at] = variance
+            bounded.append(near_bound(bins, np.flatnonzero(sel), ctx, noise_effects, elec, dither=dither))
+    out = noise + quantiser_variance(dither)
+    if bins.phase is not None:  # (every condition's bins in one evaluation)
+        at, variance = phase_averaged(bins, np.arange(len(out)), np.sqrt(noise), dither)
+        out[at] = variance
+    for at, variance in bounded:
+        out[at] = variance
     return np.maximum(out, 1e-12)
+
+
+#: Below this noise σ (DN) a variance bin is predicted from the exact quantised readout at its pixels' latent
+#: levels (:func:`phase_averaged`); above it the rounding's share differs from its average 1/12 by a swing of
+#: relative size ≈ exp(−2π²σ²) (3 × 10⁻⁹ at σ = 1 DN), far below what a bin resolves.
+PHASE_SIGMA = 1.0
+#: Levels per DN at which :func:`phase_averaged` evaluates the exact variance (resolving harmonics up to 15).
+PHASE_POINTS = 32
+
+
+def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
+                   dither: float) -> tuple[np.ndarray, np.ndarray]:
+    """The predicted variance of those bins ``idx`` (noise σ ``sigma`` at their levels) whose noise is below
+    :data:`PHASE_SIGMA`: the quantised readout's exact variance averaged over their pixels' latent levels, conditional
+    on the readout never touching a bound.  ``(bins, variances)``.
+
+    The variance V(μ) is even and periodic in the level (period 1 DN, away from the bounds): evaluated at
+    :data:`PHASE_POINTS` levels a 1/32 DN apart (near the bin's level), its cosine coefficients a_k are their discrete
+    transform, and the bin's mean is Σ a_k·mean cos(2πk·μ) with the means of its pixels (``bins.phase``,
+    :func:`~forensics.check.pixels.phase_moments`) — the trigonometric interpolation of V, exact while its harmonics
+    above :data:`~forensics.check.pixels.HARMONICS` vanish (they fall as exp(−2π²k²σ²)).
+
+    Why: below ≈ 1 DN of noise the rounding's variance swings with the level's fractional part (σ = 0.32 DN with
+    EMVA 1288's dither: −5 % at a whole level, +5 % halfway; without it ±36 %), and a camera without a DSNU puts
+    every pixel of a dark frame at the same fraction: on the EMVA 1288 standard series the dark bins read 5 % below
+    σ² + 1/6 at 2.0 DN and 3 % above it at 2.5 DN (variance gof p = 2 × 10⁻⁸²), and without the dither K came out
+    6 % high."""
+    rows = np.all(np.isfinite(bins.phase[idx]), axis=1) & (sigma < PHASE_SIGMA)
+    if not rows.any():
+        return idx[:0], np.zeros(0)
+    at, s = idx[rows], sigma[rows]
+    frac = np.arange(PHASE_POINTS) / PHASE_POINTS
+    base = np.floor(bins.level[at])[:, None]
+    mu = base + frac[None, :]
+    if bins.full_scale is None:
+        lo, hi, truncate = -2**40, 2**40, False
+    else:
+        lo, hi, truncate = 0, round(float(bins.full_scale)), True
+    _, var = readout_moments(mu, np.broadcast_to(s[:, None], mu.shape), lo, hi, truncate=truncate, dither=dither)
+    k = np.arange(bins.phase.shape[1])
+    weight = np.where(k == 0, 1.0, 2.0) / PHASE_POINTS
+    coef = var @ (np.cos(2.0 * np.pi * np.outer(frac, k)) * weight[None, :])  # (bins, harmonics)
+    return at, np.sum(coef * bins.phase[at], axis=1)
 
 
 def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: FrameContext,
@@ -371,7 +428,8 @@ def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: Fram
 
 
 def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_effects: Sequence[Effect],
-               electronic: np.ndarray | None = None, iterations: int = 60) -> tuple[np.ndarray, np.ndarray]:
+               electronic: np.ndarray | None = None, iterations: int = 60,
+               dither: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The predicted variance of those bins ``idx`` that lie near a bound (those with a ``spread``; see
     :func:`~forensics.check.pixels.variance_bins`), from the quantised, clipped readout: ``(bins, variances)``.
 
@@ -379,7 +437,8 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
     readout y = rint(clip(x, 0, full scale)) of a pixel there) gives the latent mean μ, found by
     :func:`bracketed_root` with the noise σ(μ) of the noise effects; the bin's usable pixels never touched a bound, so its
     prediction is the average of the readout variance at those μ conditional on 0 < y < full scale.  The
-    rounding variance is thus exact: 1/12 away from the bounds, less where mass sits on a bound.
+    rounding variance is thus exact: 1/12 away from the bounds, less where mass sits on a bound; ``dither``: the
+    converter's (:attr:`~forensics.sensor.model.SensorModel.dither`).
     """
     spread = bins.spread[idx]
     near = np.all(np.isfinite(spread), axis=1)
@@ -388,16 +447,18 @@ def near_bound(bins: VarianceBins, idx: np.ndarray, ctx: FrameContext, noise_eff
         return idx[:0], np.zeros(0)
     m = spread[near]
     elec = (np.zeros(len(idx)) if electronic is None else np.asarray(electronic, float))[near][:, None]
-    s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx, elec) + QUANT_VAR)
+    s = np.sqrt(noise_variance(noise_effects, np.clip(m, lo, hi), ctx, elec) + quantiser_variance(dither))
     flat_m, flat_elec = m.ravel(), np.broadcast_to(elec, m.shape).ravel()
 
     def excess(x: np.ndarray, at: np.ndarray) -> np.ndarray:
-        mean, _ = readout_moments(x, np.sqrt(noise_variance(noise_effects, x, ctx, flat_elec[at])), lo, hi)
+        mean, _ = readout_moments(x, np.sqrt(noise_variance(noise_effects, x, ctx, flat_elec[at])), lo, hi,
+                                  dither=dither)
         return mean - flat_m[at]
 
     mu = m if bins.spread_latent else \
         bracketed_root(excess, (m - 10.0 * s - 2.0).ravel(), (m + 10.0 * s + 2.0).ravel(), iterations).reshape(m.shape)
-    _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx, elec)), lo, hi, truncate=True)
+    _, var = readout_moments(mu, np.sqrt(noise_variance(noise_effects, mu, ctx, elec)), lo, hi, truncate=True,
+                             dither=dither)
     return idx[near], var.mean(axis=1)
 
 

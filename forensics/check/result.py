@@ -220,6 +220,9 @@ class CheckResult:
     plots: PlotData | None = None
     baseline: "CheckResult | None" = None
     structure: StructureResult | None = None
+    #: the converter the variance channel shows: ``dither`` (DN; 0 none) and, where the data could tell, the
+    #: variance channel's χ² under each converter compared (:func:`~forensics.check.fit.fit_noise_and_quantiser`)
+    quantiser: dict[str, Any] | None = None
     #: held-out terms for paired comparisons of models (not part of ``to_dict``)
     heldout: HeldOut | None = dataclasses.field(default=None, repr=False, compare=False)
 
@@ -234,6 +237,8 @@ class CheckResult:
                "checks": [c.to_dict() for c in self.checks], "warnings": self.warnings, "data": self.data}
         if self.structure is not None:
             out["structure"] = self.structure.to_dict()
+        if self.quantiser is not None:
+            out["quantiser"] = self.quantiser
         if self.baseline is not None:
             out["before"] = {"effects": self.baseline.effects, "error": self.baseline.error,
                              "gof": self.baseline.gof, "flagged": self.baseline.flagged}

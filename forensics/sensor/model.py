@@ -472,12 +472,17 @@ class SensorModel:
         The effects; they run sorted by :class:`Stage` (stable for equal stages).
     t0
         Decimal year from which defects arrive.
+    dither
+        Width (DN) of a uniform dither the converter adds before rounding (0: none, as most cameras; 1: EMVA
+        1288's reference simulator).  Where the noise is below ≈ 1 DN the readout's variance depends on it
+        (:func:`forensics.stats.censored.readout_moments`).
     """
 
     shape: tuple[int, int]
     bit_depth: int = 8
     effects: list[Effect] = field(default_factory=list)
     t0: float = 0.0
+    dither: float = 0.0
 
     def __post_init__(self) -> None:
         self.shape = (int(self.shape[0]), int(self.shape[1]))
@@ -524,14 +529,17 @@ class SensorModel:
         return device
 
     def to_dict(self) -> dict[str, Any]:
-        return {"shape": list(self.shape), "bit_depth": self.bit_depth, "t0": self.t0,
-                "effects": [e.to_dict() for e in self.effects]}
+        out = {"shape": list(self.shape), "bit_depth": self.bit_depth, "t0": self.t0,
+               "effects": [e.to_dict() for e in self.effects]}
+        if self.dither:
+            out["dither"] = self.dither
+        return out
 
     @classmethod
     def from_dict(cls, obj: dict[str, Any]) -> "SensorModel":
         effects = [make_effect(e["effect"], **e.get("params", {})) for e in obj.get("effects", [])]
         return cls(shape=tuple(obj["shape"]), bit_depth=int(obj.get("bit_depth", 8)), effects=effects,
-                   t0=float(obj.get("t0", 0.0)))
+                   t0=float(obj.get("t0", 0.0)), dither=float(obj.get("dither", 0.0)))
 
 
 @dataclass
@@ -569,8 +577,12 @@ class Device:
         return signal
 
     def expose(self, scene: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
-        """An image: the signal clipped to ``[0, full_scale]`` and rounded to the model's dtype."""
-        return quantize(self.signal(scene, ctx, rng), self.model.full_scale, self.model.dtype)
+        """An image: the signal (plus the model's dither, if any) clipped to ``[0, full_scale]`` and rounded to the
+        model's dtype."""
+        signal = self.signal(scene, ctx, rng)
+        if self.model.dither > 0:
+            signal += rng.uniform(-0.5 * self.model.dither, 0.5 * self.model.dither, signal.shape).astype(signal.dtype)
+        return quantize(signal, self.model.full_scale, self.model.dtype)
 
     def mean_signal(self, light: np.ndarray, ctx: FrameContext) -> np.ndarray:
         """The expected signal (no temporal noise, no clipping) for incident ``light``, in float64.

@@ -7,16 +7,21 @@
 computed exactly from the probabilities of the integer levels (no Sheppard approximation, which fails near a
 bound and for σ below ~1 DN).  Far from the bounds it equals μ and σ² + 1/12 (the rounding variance); at a
 bound the rounding variance vanishes with the mass that sits on the atom.  With ``truncate=True`` it gives
-the moments conditional on lo < y < hi (what remains when pixels that touched a bound are set aside).
+the moments conditional on lo < y < hi (what remains when pixels that touched a bound are set aside).  With
+``dither=d`` the converter adds a uniform draw of width d DN before rounding (EMVA 1288's reference simulator:
+d = 1): y = rint(clip(x + u, lo, hi)), u ~ U(−d/2, d/2), whose level probabilities are those of the Gaussian
+smoothed by the box (:func:`_edge_probabilities`).
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.special import ndtr
+from scipy.special import erfcx, ndtr
 
 _SQRT2PI = math.sqrt(2.0 * math.pi)
+_SQRT2 = math.sqrt(2.0)
+_SQRT_HALF_PI = math.sqrt(0.5 * math.pi)
 
 
 def _phi(z: np.ndarray) -> np.ndarray:
@@ -27,6 +32,37 @@ def _phi(z: np.ndarray) -> np.ndarray:
 def _mass_between(za: np.ndarray, zb: np.ndarray) -> np.ndarray:
     """Φ(zb) − Φ(za) without cancellation in either tail."""
     return np.where(za > 0, ndtr(-za) - ndtr(-zb), ndtr(zb) - ndtr(za))
+
+
+def _partial_tail(a: np.ndarray) -> np.ndarray:
+    """L(a) = G(−a) for a ≥ 0, where G(t) = ∫₋∞ᵗ Φ(s) ds = t·Φ(t) + φ(t): φ(a)·(1 − a·R(a)) with Mills' ratio
+    R(a) = √(π/2)·erfcx(a/√2), accurate where both terms of G nearly cancel.  G(t) = L(|t|) + max(t, 0)."""
+    return _phi(a) * (1.0 - a * _SQRT_HALF_PI * erfcx(a / _SQRT2))
+
+
+def _edge_probabilities(edges: np.ndarray, mu: np.ndarray, sigma: np.ndarray,
+                        dither: float) -> tuple[np.ndarray, np.ndarray]:
+    """P(w < e) and P(w > e) at ``edges`` e for w = x + u, x ~ N(μ, σ²), u ~ U(−d/2, d/2) (d = ``dither``;
+    d = 0: Φ(z) and Φ(−z)).  ∫ Φ((e − u − μ)/σ) du/d over the box is (σ/d)·[G(t₊) − G(t₋)] with
+    t± = (e ± d/2 − μ)/σ; the upper tail the same mirrored, (σ/d)·[G(−t₋) − G(−t₊)].  Both come from L at |t±|
+    (:func:`_partial_tail`), so that neither tail is a difference from 1; with d = 1 DN and edges a whole DN apart
+    (a row of levels' edges) an edge's t₊ is the next one's t₋, and each L is computed once."""
+    if dither <= 0:
+        z = (edges - mu) / sigma
+        return ndtr(z), ndtr(-z)
+    t_hi = (edges + 0.5 * dither - mu) / sigma
+    t_lo = (edges - 0.5 * dither - mu) / sigma
+    l_hi = _partial_tail(np.abs(t_hi))
+    if dither == 1.0 and edges.ndim == 2 and edges.shape[1] > 1 and np.all(np.diff(edges[:1], axis=1) == 1.0):
+        l_lo = np.empty_like(l_hi)
+        l_lo[:, 1:] = l_hi[:, :-1]  # (edges + ½) of one column is (edges − ½) of the next, bit for bit
+        l_lo[:, :1] = _partial_tail(np.abs(t_lo[:, :1]))
+    else:
+        l_lo = _partial_tail(np.abs(t_lo))
+    scale = sigma / dither
+    lower = scale * (l_hi + np.maximum(t_hi, 0.0) - l_lo - np.maximum(t_lo, 0.0))
+    upper = scale * (l_lo + np.maximum(-t_lo, 0.0) - l_hi - np.maximum(-t_hi, 0.0))
+    return lower, upper
 
 
 def clipped_normal_moments(mu, sigma, lo=-np.inf, hi=np.inf) -> tuple[np.ndarray, np.ndarray]:
@@ -74,12 +110,25 @@ MIN_INNER_MASS = 1e-12
 
 
 def readout_moments(mu, sigma, lo: int, hi: int, truncate: bool = False,
-                    reach: float = 10.0, closed_form: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                    reach: float = 10.0, closed_form: bool = True, dither: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Mean and variance of the readout y = rint(clip(x, lo, hi)), x ~ N(mu, sigma²), integer lo < hi.
 
     P(y = k) = Φ((k+½−μ)/σ) − Φ((k−½−μ)/σ) for lo < k < hi; the bounds take the tails.  Only the levels
     within ``reach`` σ of clip(μ) are summed (the mass beyond is below Φ(−reach)).  ``truncate``: conditional
-    on lo < y < hi.  (Ties of rint at half-integers have probability 0.)
+    on lo < y < hi.  (Ties of rint at half-integers have probability 0.)  ``dither``: the width d of a uniform
+    dither added before rounding (the module's docstring); the closed form below then takes the smoothed variable
+    as normal of variance σ² + d²/12 (the box's fourth cumulant, −d⁴/120, changes its tail masses by ≲ 10⁻⁴ of
+    themselves at σ ≥ :data:`SMOOTH_SIGMA`).
+
+    Examples
+    --------
+    At an integer mean rounding leaves far less than σ² + 1/12 = 0.173 (its average over μ), and a dither of
+    1 DN adds about its own 1/12 on top (0.257 on average):
+
+    >>> round(float(readout_moments(2.0, 0.3, 0, 4095)[1][()]), 4)
+    0.0956
+    >>> round(float(readout_moments(2.0, 0.3, 0, 4095, dither=1.0)[1][()]), 4)
+    0.2395
 
     For σ ≥ :data:`SMOOTH_SIGMA`, with μ no more than max(1, :data:`TAIL_SLOPE`·σ) σ beyond a bound, the sum is replaced by the
     continuous normal's moments on (lo+½, hi−½) plus the rounding's by Euler–Maclaurin (per period the rounding
@@ -99,19 +148,25 @@ def readout_moments(mu, sigma, lo: int, hi: int, truncate: bool = False,
     if mu.size == 0:
         return np.zeros(shape), np.zeros(shape)
     mean, var = np.empty(mu.shape), np.empty(mu.shape)
-    smooth = _smooth_readout(mu, sigma, lo, hi, truncate, mean, var) if closed_form else np.zeros(mu.shape, bool)
+    smooth = (_smooth_readout(mu, _smoothed_sigma(sigma, dither), lo, hi, truncate, mean, var) if closed_form
+              else np.zeros(mu.shape, bool))
     rest = np.flatnonzero(~smooth)
-    rest = rest[~_single_level(mu, sigma, rest, lo, hi, truncate, reach, mean, var)]
+    rest = rest[~_single_level(mu, sigma, rest, lo, hi, truncate, reach, mean, var, dither)]
     # the sum's window is set by the widest row summed together: sum rows of like width together (within a
     # factor of 2), so a few wide ones do not widen every row's window
-    octave = np.floor(np.log2(_window(mu[rest], sigma[rest], lo, hi, reach, truncate))).astype(int)
+    octave = np.floor(np.log2(_window(mu[rest], sigma[rest], lo, hi, reach, truncate, dither))).astype(int)
     for o in np.unique(octave):
         at = rest[octave == o]
-        mean[at], var[at] = _summed_readout(mu[at], sigma[at], lo, hi, truncate, reach)
+        mean[at], var[at] = _summed_readout(mu[at], sigma[at], lo, hi, truncate, reach, dither)
     return mean.reshape(shape), var.reshape(shape)
 
 
-def truncated_readout_mean(mu, sigma, lo: int, hi: int, reach: float = 10.0) -> np.ndarray:
+def _smoothed_sigma(sigma: np.ndarray, dither: float) -> np.ndarray:
+    """The standard deviation of x + u (the dither's variance d²/12 added)."""
+    return sigma if dither <= 0 else np.sqrt(sigma * sigma + dither * dither / 12.0)
+
+
+def truncated_readout_mean(mu, sigma, lo: int, hi: int, reach: float = 10.0, dither: float = 0.0) -> np.ndarray:
     """:func:`readout_moments`' truncated mean (conditional on lo < y < hi) for many values at once, as cheaply as
     it holds: the closed form where σ ≥ :data:`SMOOTH_SIGMA` allows it, a level's own value where one level holds
     the mass, and for the rest (σ below :data:`SMOOTH_SIGMA`, or means deep beyond a bound) a checked table
@@ -128,25 +183,25 @@ def truncated_readout_mean(mu, sigma, lo: int, hi: int, reach: float = 10.0) -> 
     if hi <= lo + 2:
         raise ValueError("empty range of levels")
     mean, var = np.empty(mu.shape), np.empty(mu.shape)
-    rest = np.flatnonzero(~_smooth_readout(mu, sigma, lo, hi, True, mean, var))
-    rest = rest[~_single_level(mu, sigma, rest, lo, hi, True, reach, mean, var)]
+    rest = np.flatnonzero(~_smooth_readout(mu, _smoothed_sigma(sigma, dither), lo, hi, True, mean, var))
+    rest = rest[~_single_level(mu, sigma, rest, lo, hi, True, reach, mean, var, dither)]
     if rest.size:
         m, s = mu[rest], sigma[rest]
-        table = tabulated_truncated_mean(m, s, lo, hi)
+        table = tabulated_truncated_mean(m, s, lo, hi, dither=dither)
         if table is not None:
             mean[rest] = table
         else:
             distinct, inverse = np.unique(m + 1j * s, return_inverse=True)  # complex numbers sort by (real, imag)
             if len(distinct) > 0.5 * len(m):
-                mean[rest] = readout_moments(m, s, lo, hi, truncate=True, reach=reach)[0]
+                mean[rest] = readout_moments(m, s, lo, hi, truncate=True, reach=reach, dither=dither)[0]
             else:
                 mean[rest] = readout_moments(distinct.real, distinct.imag, lo, hi, truncate=True,
-                                             reach=reach)[0][inverse.ravel()]
+                                             reach=reach, dither=dither)[0][inverse.ravel()]
     return mean.reshape(shape)
 
 
 def _single_level(mu: np.ndarray, sigma: np.ndarray, at: np.ndarray, lo: int, hi: int, truncate: bool, reach: float,
-                  mean: np.ndarray, var: np.ndarray) -> np.ndarray:
+                  mean: np.ndarray, var: np.ndarray, dither: float = 0.0) -> np.ndarray:
     """Fill ``mean``/``var`` at the values ``at`` whose nearest level holds all but Φ(−``reach``) of their mass
     (σ under 1/``reach`` of μ's distance to that level's edges; a bound's level takes its whole tail); returns
     which of ``at`` it filled.
@@ -157,14 +212,15 @@ def _single_level(mu: np.ndarray, sigma: np.ndarray, at: np.ndarray, lo: int, hi
     the window of their group was most of its time on the EMVA 1288 standard series with shot noise in the model."""
     m, s = mu[at], sigma[at]
     c = np.rint(np.clip(m, lo, hi))
-    below = np.where(c <= lo, np.inf, m - (c - 0.5))  # distance to the level's lower edge (none at the bound)
-    above = np.where(c >= hi, np.inf, (c + 0.5) - m)
+    # distance to the level's lower and upper edges (none at a bound), less the dither's half-width
+    below = np.where(c <= lo, np.inf, m - (c - 0.5) - 0.5 * dither)
+    above = np.where(c >= hi, np.inf, (c + 0.5) - m - 0.5 * dither)
     single = np.minimum(below, above) >= reach * s
     if truncate:
         # at a bound, what counts is the inner level next to it against the one after: their densities differ by
         # exp(−(2d + 1)/2σ²), d = μ's distance to the bound's edge (a mean 10 σ beyond the bound at σ = 20 DN
         # leaves its inner mass spread over ≈ 2 DN, not on one level)
-        d = np.where(c <= lo, lo + 0.5 - m, m - (hi - 0.5))
+        d = np.where(c <= lo, lo + 0.5 - m, m - (hi - 0.5)) - 0.5 * dither
         single = np.where((c <= lo) | (c >= hi), 2.0 * d + 1.0 >= (reach * s) ** 2, single)
     level = np.clip(c, lo + 1, hi - 1) if truncate else c
     mean[at[single]] = level[single]
@@ -218,24 +274,26 @@ def _smooth_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
     return ok
 
 
-def _window(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, reach: float, truncate: bool = False) -> np.ndarray:
+def _window(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, reach: float, truncate: bool = False,
+            dither: float = 0.0) -> np.ndarray:
     """Per value, how many levels either side of clip(μ) carry mass above Φ(−``reach``), plus two: ``reach``·σ,
     less the distance of μ beyond a bound (the levels past the bound do not exist).  ``truncate``: the mass that
     matters is relative to what lies inside the bounds — for μ a distance z·σ beyond a bound, the density inside
     falls by z·n/σ + n²/2σ² over n levels, which reaches ``reach``²/2 at n = σ·(√(z² + reach²) − z) (the same
     as ``reach``·σ at z = 0; the untruncated window stopped short of it at z ≳ ``reach``·0.9 and cut the
     conditional mean: 0.67 DN at σ = 19.9 DN, z = 10)."""
-    beyond = np.maximum(np.maximum(lo - mu, mu - hi), 0.0)
+    # (a dither of width d reaches d/2 further either way: the window is taken from the nearer end of its box)
+    beyond = np.maximum(np.maximum(lo - mu, mu - hi) - 0.5 * dither, 0.0)
     if truncate:
         z = beyond / sigma
-        return np.ceil(sigma * (np.sqrt(z * z + reach * reach) - z)) + 2.0
-    return np.ceil(np.maximum(reach * sigma - beyond, 0.0)) + 2.0
+        return np.ceil(sigma * (np.sqrt(z * z + reach * reach) - z) + 0.5 * dither) + 2.0
+    return np.ceil(np.maximum(reach * sigma - beyond, 0.0) + 0.5 * dither) + 2.0
 
 
 def _summed_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncate: bool,
-                    reach: float) -> tuple[np.ndarray, np.ndarray]:
-    """The readout's moments summed over its integer levels within ``reach`` σ."""
-    half = int(_window(mu, sigma, lo, hi, reach, truncate).max())
+                    reach: float, dither: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The readout's moments summed over its integer levels within ``reach`` σ (and the dither's reach)."""
+    half = int(_window(mu, sigma, lo, hi, reach, truncate, dither).max())
     c = np.rint(np.clip(mu, lo, hi))
     offsets = np.arange(-half, half + 1, dtype=float)
     if 2 * half + 1 >= hi - lo + 1:  # the window covers the whole range: sum over every level
@@ -247,11 +305,12 @@ def _summed_readout(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int, truncat
     # level's upper edge is the next one's lower edge, bit for bit: k + ½ = (k + 1) − ½ exactly) — the same
     # numbers as _mass_between level by level, with half its ndtr calls
     edges = np.concatenate([k - 0.5, k[:, -1:] + 0.5], axis=1)
-    z = (edges - mu[:, None]) / sigma[:, None]
-    z[:, :-1] = np.where(k <= lo, -np.inf, z[:, :-1])  # the bounds take the tails
-    z[:, 1:] = np.where(k >= hi, np.inf, z[:, 1:])
-    lower, upper = ndtr(z), ndtr(-z)
-    p = np.where(valid, np.where(z[:, :-1] > 0, upper[:, :-1] - upper[:, 1:], lower[:, 1:] - lower[:, :-1]), 0.0)
+    lower, upper = _edge_probabilities(edges, mu[:, None], sigma[:, None], dither)
+    first, last = np.zeros(edges.shape, bool), np.zeros(edges.shape, bool)
+    first[:, :-1], last[:, 1:] = k <= lo, k >= hi  # the bounds take the tails
+    lower, upper = np.where(first, 0.0, np.where(last, 1.0, lower)), np.where(first, 1.0, np.where(last, 0.0, upper))
+    above = edges[:, :-1] > mu[:, None]  # difference whichever tail is the smaller
+    p = np.where(valid, np.where(above, upper[:, :-1] - upper[:, 1:], lower[:, 1:] - lower[:, :-1]), 0.0)
     if truncate:
         p = np.where((k > lo) & (k < hi), p, 0.0)
     tot = p.sum(axis=1)
@@ -334,7 +393,7 @@ def uniform_bicubic(starts: tuple[float, float], steps: tuple[float, float], tab
 
 
 def tabulated_truncated_mean(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int,
-                             tolerance: float = TABLE_TOLERANCE) -> np.ndarray | None:
+                             tolerance: float = TABLE_TOLERANCE, dither: float = 0.0) -> np.ndarray | None:
     """:func:`readout_moments`' truncated mean (conditional on lo < y < hi) by local cubics over a uniform grid of
     (μ, σ), checked against the exact sum; None where a table does not pay or does not hold (the caller sums).
 
@@ -360,20 +419,21 @@ def tabulated_truncated_mean(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int
     if grid_mu.size * n_sigma + TABLE_CHECKS > mu.size // 2:
         return None  # the table and its check would cost a good part of the exact sums they replace
     if one_sigma:  # a cubic in μ alone
-        table = readout_moments(grid_mu, s_lo, lo, hi, truncate=True, closed_form=False)[0]
+        table = readout_moments(grid_mu, s_lo, lo, hi, truncate=True, closed_form=False, dither=dither)[0]
         out = uniform_cubic(float(grid_mu[0]), float(grid_mu[1] - grid_mu[0]), table, mu)
     else:
         # σ's grid reaches a step beyond both ends, as μ's does, so that every value has its 4 × 4 nodes around it
         # (its step is at most TABLE_STEP·σ_min: the node below σ_min is still above 0)
         h_sigma = (s_hi - s_lo) / (n_sigma - 1)
         grid_sigma = s_lo + h_sigma * np.arange(-1, n_sigma + 1)
-        table = readout_moments(grid_mu[:, None], grid_sigma[None, :], lo, hi, truncate=True, closed_form=False)[0]
+        table = readout_moments(grid_mu[:, None], grid_sigma[None, :], lo, hi, truncate=True, closed_form=False,
+                                dither=dither)[0]
         out = uniform_bicubic((float(grid_mu[0]), float(grid_sigma[0])),
                               (float(grid_mu[1] - grid_mu[0]), h_sigma), table, mu, sigma)
     step = max(1, mu.size // TABLE_CHECKS)
     check = np.unique(np.concatenate([np.arange(0, mu.size, step),
                                       [np.argmin(mu), np.argmax(mu), np.argmin(sigma), np.argmax(sigma)]]))
-    exact = readout_moments(mu[check], sigma[check], lo, hi, truncate=True, closed_form=False)[0]
+    exact = readout_moments(mu[check], sigma[check], lo, hi, truncate=True, closed_form=False, dither=dither)[0]
     if not np.max(np.abs(out[check] - exact)) <= tolerance:
         return None
     return out

@@ -34,6 +34,30 @@ def test_readout_against_monte_carlo(mu, sigma, lo, hi):
     _check(float(m), float(v), inner)
 
 
+DITHER_CASES = [(2.0, 0.32, 0, 4095), (2.5, 0.32, 0, 4095), (0.3, 0.4, 0, 4095), (1.2, 0.05, 0, 255),
+                (254.6, 0.5, 0, 255), (1.0, 2.5, 0, 4095), (-1.0, 3.0, 0, 4095)]
+
+
+@pytest.mark.parametrize("mu,sigma,lo,hi", DITHER_CASES)
+def test_dithered_readout_against_monte_carlo(mu, sigma, lo, hi):
+    """EMVA 1288's simulator: rint(x + u) with u ~ U(−½, ½), clipped — exact sums and closed form alike, with and
+    without the truncation (σ = 0.05: the box alone sets the levels' shares)."""
+    rng = np.random.default_rng(3)
+    y = np.clip(np.rint(rng.normal(mu, sigma, N) + rng.uniform(-0.5, 0.5, N)), lo, hi)
+    for closed_form in (True, False):
+        m, v = readout_moments(mu, sigma, lo, hi, dither=1.0, closed_form=closed_form)
+        _check(float(m), float(v), y)
+        m, v = readout_moments(mu, sigma, lo, hi, truncate=True, dither=1.0, closed_form=closed_form)
+        _check(float(m), float(v), y[(y > lo) & (y < hi)])
+
+
+def test_dither_of_width_zero_is_plain_rounding():
+    mu, sigma = np.linspace(-2.0, 8.0, 41), np.linspace(0.05, 3.0, 41)
+    plain, nearly = readout_moments(mu, sigma, 0, 255), readout_moments(mu, sigma, 0, 255, dither=1e-6)
+    np.testing.assert_allclose(nearly[0], plain[0], atol=1e-6)
+    np.testing.assert_allclose(nearly[1], plain[1], atol=1e-6)
+
+
 def test_limits_and_vectorisation():
     mu = np.array([[100.0, -1e3, 1e3], [5.0, 50.0, 7.0]])
     m, v = clipped_normal_moments(mu, 1.5, 0.0, 200.0)
