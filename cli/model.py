@@ -378,6 +378,11 @@ def format_check(result: Any) -> str:
         size += f" (sets {p.hyper})" if sized else ""
         lines.append(f"  {p.effect + '.' + p.name:<32} pattern over {p.blocks} blocks: rms {_g(p.rms)}, "
                      f"max |value| {_g(p.maximum)}{hyper}{size}")
+    q = getattr(result, "quantiser", None)
+    if q and q.get("compared"):
+        chi2 = "; ".join(f"{k} {_g(v, '.5g')}" for k, v in q["variance_chi2"].items())
+        kind = f"rounding after a uniform dither of {q['dither']:g} DN" if q["dither"] else "rounding, no dither"
+        lines.append(f"  {'converter':<32} {kind} (the variance channel's χ²: {chi2})")
     if d.get("dark_series"):
         from forensics.check.darkfigures import format_dark_figures
 

@@ -386,7 +386,7 @@ def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
     on the readout never touching a bound.  ``(bins, variances)``.
 
     The variance V(μ) is even and periodic in the level (period 1 DN, away from the bounds): evaluated at
-    :data:`PHASE_POINTS` levels a 1/32 DN apart (near the bin's level), its cosine coefficients a_k are their discrete
+    :data:`PHASE_POINTS` fractions a 1/32 DN apart (each at the level within ½ DN of the bin's), its cosine coefficients a_k are their discrete
     transform, and the bin's mean is Σ a_k·mean cos(2πk·μ) with the means of its pixels (``bins.phase``,
     :func:`~forensics.check.pixels.phase_moments`) — the trigonometric interpolation of V, exact while its harmonics
     above :data:`~forensics.check.pixels.HARMONICS` vanish (they fall as exp(−2π²k²σ²)).
@@ -401,8 +401,10 @@ def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
         return idx[:0], np.zeros(0)
     at, s = idx[rows], sigma[rows]
     frac = np.arange(PHASE_POINTS) / PHASE_POINTS
-    base = np.floor(bins.level[at])[:, None]
-    mu = base + frac[None, :]
+    level = bins.level[at][:, None]
+    # each fraction at the level nearest the bin's (the period holds away from the bounds; near them this is the
+    # closest the bin's pixels come to it: a whole DN lower, a dark bin at 2.0 DN was predicted half its variance)
+    mu = level + (frac[None, :] - level + 0.5) % 1.0 - 0.5
     if bins.full_scale is None:
         lo, hi, truncate = -2**40, 2**40, False
     else:

@@ -33,18 +33,18 @@ def _bins(levels_per_bin: list[np.ndarray]) -> VarianceBins:
 
 @pytest.mark.parametrize("dither", [0.0, 1.0])
 def test_phase_averaged_variance_matches_simulated_readouts(dither):
-    """Bins of pixels at one whole level, a quarter, a half, and pixels spread over three DN (a DSNU): the
-    prediction is the simulated readouts' variance within 5 relative SEs; the smooth law σ² + (1 + d²)/12 misses
-    the single-fraction bins by 10–40 SEs."""
+    """Bins of pixels at (a hair below) one whole level 2 DN above the 0-DN bound, a quarter, a half, and pixels
+    spread over three DN (a DSNU): the prediction is the simulated readouts' variance within 5 relative SEs; the
+    smooth law σ² + (1 + d²)/12 misses the single-fraction bins by 10–40 SEs."""
     sigma = 0.32
     rng = np.random.default_rng(7)
     spread = np.linspace(2.0, 5.0, 97)[:-1]
-    bins = _bins([np.array([2.0]), np.array([2.25]), np.array([2.5]), spread])
+    bins = _bins([np.array([1.999]), np.array([2.25]), np.array([2.5]), spread])
     at, predicted = phase_averaged(bins, np.arange(4), np.full(4, sigma), dither)
     assert list(at) == [0, 1, 2, 3]
     smooth = sigma**2 + QUANT_VAR * (1 + dither**2)
     missed = 0
-    for b, levels in enumerate([[2.0], [2.25], [2.5], spread]):
+    for b, levels in enumerate([[1.999], [2.25], [2.5], spread]):
         mu = rng.choice(np.asarray(levels), N)
         x = rng.normal(mu, sigma) + rng.uniform(-0.5 * dither, 0.5 * dither, N)
         y = np.rint(x)
