@@ -409,7 +409,10 @@ def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
         lo, hi, truncate = -2**40, 2**40, False
     else:
         lo, hi, truncate = 0, round(float(bins.full_scale)), True
-    _, var = readout_moments(mu, np.broadcast_to(s[:, None], mu.shape), lo, hi, truncate=truncate, dither=dither)
+    # (levels within 6 σ: the mass beyond, 2 × 10⁻⁹, moves no variance a bin resolves; the default 10 σ summed
+    # 40 % more levels)
+    _, var = readout_moments(mu, np.broadcast_to(s[:, None], mu.shape), lo, hi, truncate=truncate, dither=dither,
+                             reach=6.0)
     k = np.arange(bins.phase.shape[1])
     weight = np.where(k == 0, 1.0, 2.0) / PHASE_POINTS
     coef = var @ (np.cos(2.0 * np.pi * np.outer(frac, k)) * weight[None, :])  # (bins, harmonics)
