@@ -38,6 +38,11 @@ DITHERS = (0.0, 1.0)
 #: How much better (in the variance channel's χ²) a dithered converter must fit than plain rounding to be taken:
 #: a likelihood ratio of e⁵ ≈ 150 between two models with the same parameters.
 DITHER_MARGIN = 10.0
+#: A converter other than the one assumed is taken only where the noise model fits the variance bins with it to this
+#: χ² per bin: a model that lacks a noise effect misfits them by far more than any converter could explain, and its
+#: χ² differences say nothing about the converter (the base model took a dither on 8-bit data without one, and
+#: each change costs a refit).
+CONVERTER_FIT = 4.0
 
 
 @dataclass(frozen=True)
@@ -83,18 +88,19 @@ class FittedModel:
 
 
 def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24,
-              start: Mapping[str, float] | None = None) -> FittedModel:
+              start: Mapping[str, float] | None = None, dither: float | None = None) -> FittedModel:
     """Fit ``effects`` to the evidence (the objects given are left unchanged).
 
     Pixel classes come from defect detection; when the model has fixed patterns on normal pixels, detection is
     repeated against the fitted model's prediction for defect-free pixels and the model refitted once — unless
     the first fit did not settle (detection against a model that is still moving finds defects everywhere).
     ``start``: the global pixel parameters to start from (:func:`warm_start`; default the effects' own starts).
-    The converter is the one the variance channel shows (:func:`fit_noise_and_quantiser`); where the final
-    noise fit shows another than its first look did, the model is refitted with that one.
+    The converter is the one the variance channel shows (:func:`fit_noise_and_quantiser`); ``dither``: the one
+    the fit assumes until then (None: plain rounding; ``--auto`` passes the previous model's), and where the noise
+    fit shows another, the model is refitted with that one.
     """
     pixels = ev.pixels()
-    fitted = _fit_once(ev, pixels, effects, max_cycles, start=start)
+    fitted = _fit_once(ev, pixels, effects, max_cycles, start=start, dither=dither)
     if fitted.not_converged:
         return fitted
     device = fitted.device
@@ -194,8 +200,8 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     """One fit of every channel; ``start``: a previous fit of the same model whose global pixel parameters the
     pixel fit starts from (:func:`warm_start`); ``patterns_from``: that fit's device, whose pattern values the
     pixel fit starts from where the same pixel carries the same pattern (:func:`carry_patterns`); ``dither``: the
-    converter the pixel fit assumes (None: the one the first look at the variance channel shows; either way the
-    final noise fit picks one again, :func:`fit_noise_and_quantiser`)."""
+    converter the pixel fit assumes (None: plain rounding; the noise fit then picks one,
+    :func:`fit_noise_and_quantiser`)."""
     effects = [at_null(e) for e in SensorModel(shape=ev.shape, bit_depth=ev.bit_depth, effects=list(effects),
                                                t0=float(ev.times[0])).effects]  # in stage order
     # ---------------------------------------------------------------- arrivals
@@ -226,11 +232,11 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     # a first look at the noise and the converter (the pixel channel's censored means near 0 and full scale
     # depend on both)
     n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
-    look = [bespoke_fit(effects[i], ev) for i in n_idx]
-    if dither is None:
-        first, device, _ = fit_noise_and_quantiser(pixels.bins, ev.rgroups, look, on_device(device, effects))
-    else:
-        first = fit_variance(pixels.bins, ev.rgroups, look, on_device(device, effects))
+    # (under the converter assumed: the bins' fractional levels are the neighbours' until the fit gives the pixels'
+    # own, and with a DSNU those would show a swing the pixels do not have — a first look comparing converters
+    # chose the dither on 8-bit data without one)
+    first = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx],
+                         on_device(device, effects))
     assumed = device.model.dither
     for i, e in zip(n_idx, first.effects):
         effects[i] = e
@@ -705,18 +711,22 @@ def fit_noise_and_quantiser(bins: VarianceBins, rgroups: Sequence[Group], noise:
 
     Why: below ≈ 1 DN of noise the readout's variance depends on the converter — EMVA 1288's reference simulator
     dithers, most cameras do not — and the two laws differ by up to 8 % in a dark frame's variance at σ ≈ 0.4 DN
-    (:func:`~forensics.check.prediction.phase_averaged`); the wrong one moves the conversion gain."""
+    (:func:`~forensics.check.prediction.phase_averaged`); the wrong one moves the conversion gain.  The device's
+    converter is fitted first (the others start from its fit: the noise moves little, σ² by about the dither's
+    d²/12); another than the device's is taken only where it fits the bins to :data:`CONVERTER_FIT` per bin."""
     if not quantiser_shows(bins):
         fit = fit_variance(bins, rgroups, noise, device)
         return fit, device, QuantiserChoice(device.model.dither, {})
-    # each further converter's fit starts from the first's (the noise moves little: σ² by about the dither's
-    # d²/12); from the nulls each took as many Gauss–Newton steps again, a quarter of a small series' check
-    fits = {DITHERS[0]: fit_variance(bins, rgroups, noise, with_dither(device, DITHERS[0]))}
-    for d in DITHERS[1:]:
-        fits[d] = fit_variance(bins, rgroups, fits[DITHERS[0]].effects, with_dither(device, d))
-    chi2 = {d: f.chi2 for d, f in fits.items()}
+    assumed = device.model.dither
+    fits = {assumed: fit_variance(bins, rgroups, noise, device)}
+    for d in DITHERS:
+        if d not in fits:
+            fits[d] = fit_variance(bins, rgroups, fits[assumed].effects, with_dither(device, d))
+    chi2 = {d: fits[d].chi2 for d in DITHERS}
     best = min(DITHERS, key=lambda d: chi2[d])
     chosen = best if chi2[best] < chi2[DITHERS[0]] - DITHER_MARGIN else DITHERS[0]
+    if chosen != assumed and chi2[chosen] > CONVERTER_FIT * len(bins.observed):
+        chosen = assumed  # a model that misfits the bins either way says nothing about the converter
     return fits[chosen], with_dither(device, chosen), QuantiserChoice(chosen, chi2)
 
 

@@ -104,10 +104,12 @@ def resolve_effects(add: Sequence[str | Effect]) -> list[Effect]:
     return [spec if isinstance(spec, Effect) else make_effect(spec) for spec in add]
 
 
-def run_check(ev: Evidence, effects: Sequence[Effect], start: Mapping[str, float] | None = None) -> CheckResult:
+def run_check(ev: Evidence, effects: Sequence[Effect], start: Mapping[str, float] | None = None,
+              dither: float | None = None) -> CheckResult:
     """Fit ``effects`` to prepared evidence, score, and diagnose (``effects`` are left unchanged); ``start``:
-    global pixel parameters to start the fit from (``effect.name`` → value, :func:`~forensics.check.fit.warm_start`)."""
-    fitted = fit_model(ev, effects, start=start)
+    global pixel parameters to start the fit from (``effect.name`` → value, :func:`~forensics.check.fit.warm_start`);
+    ``dither``: the converter the fit assumes until its noise fit picks one (a previous model's choice)."""
+    fitted = fit_model(ev, effects, start=start, dither=dither)
     px = fitted.pixels
     r2, floor = heldout_terms(ev, fitted)
     classes = class_errors(ev, fitted, r2, floor)

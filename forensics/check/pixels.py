@@ -117,9 +117,16 @@ def log_variance(observed: np.ndarray, df: np.ndarray) -> np.ndarray:
 HARMONICS = 15
 
 
-def phase_moments(labels: np.ndarray, levels: np.ndarray, n_bins: int, near: np.ndarray) -> np.ndarray:
+#: A variance bin above this (DN²) gets no phase harmonics: its noise is above ≈ 1.3 DN under either converter,
+#: where the rounding's swing (≈ exp(−2π²σ²) < 10⁻¹⁴) is nothing a bin resolves — and on whole frames of a
+#: photon-transfer series most bins are such, whose pixels need not be visited.
+PHASE_VARIANCE_MAX = 2.0
+
+
+def phase_moments(labels: np.ndarray, levels: np.ndarray, n_bins: int, skip: np.ndarray) -> np.ndarray:
     """Per bin, the mean of cos(2πk·level) over its pixels (``labels`` ≥ 0, as :attr:`VarianceBins.labels`) for
-    k = 0 … :data:`HARMONICS`; NaN rows for the bins ``near`` a bound and those without pixels.
+    k = 0 … :data:`HARMONICS`; NaN rows for the bins to ``skip`` (near a bound, or too noisy to need them) and
+    those without pixels.
 
     Why these: the readout's variance at low noise is an even periodic function of the level (period 1 DN), so its
     mean over a bin's pixels is Σ a_k·mean cos(2πk·level) — exact for pixels at one level as for pixels spread over
@@ -135,14 +142,19 @@ def phase_moments(labels: np.ndarray, levels: np.ndarray, n_bins: int, near: np.
     >>> [round(float(v), 6) for v in m[0, :3]], [round(float(v), 6) + 0.0 for v in m[1, :3]]
     ([1.0, 1.0, 1.0], [1.0, 0.0, -1.0])
     """
+    wanted = ~np.asarray(skip, bool)
+    out = np.full((n_bins, HARMONICS + 1), np.nan)
+    if not wanted.any():
+        return out
     m = labels >= 0
     lab = labels[m].astype(np.int64)
-    theta = 2.0 * np.pi * (levels[m] - np.floor(levels[m]))
+    keep = wanted[lab]
+    lab, v = lab[keep], levels[m][keep]
+    theta = 2.0 * np.pi * (v - np.floor(v))
     count = np.bincount(lab, minlength=n_bins)[:n_bins].astype(float)
-    out = np.empty((n_bins, HARMONICS + 1))
     for k in range(HARMONICS + 1):
         out[:, k] = np.bincount(lab, np.cos(k * theta), minlength=n_bins)[:n_bins] / np.maximum(count, 1.0)
-    out[(count == 0) | np.asarray(near, bool)] = np.nan
+    out[(count == 0) | ~wanted] = np.nan
     return out
 
 
@@ -162,7 +174,8 @@ def with_latent_spread(bins: VarianceBins, latent: np.ndarray) -> VarianceBins:
     if bins.phase is not None:  # the other bins' fractional parts: the pixels' own latent levels, offsets included
         near_rows = np.zeros(len(bins.level), bool)
         near_rows[near] = True
-        bins = dataclasses.replace(bins, phase=phase_moments(bins.labels, latent, len(bins.level), near_rows))
+        bins = dataclasses.replace(bins, phase=phase_moments(bins.labels, latent, len(bins.level),
+                                                             near_rows | (bins.observed > PHASE_VARIANCE_MAX)))
     if near.size == 0:
         return bins
     spread = bins.spread.copy()
@@ -530,10 +543,11 @@ def variance_bins(meas: Measurements, rgroups: Sequence[Group], usable: np.ndarr
     spread = np.array(spread).reshape(len(rows), n_spread)
     # until a fit gives the pixels' latent levels, their fractional parts are the neighbours' (exact without a
     # DSNU, where every pixel of a frame shares one level — the case in which they matter most)
-    phase = None if scene is None else phase_moments(labels, scene, len(rows), np.all(np.isfinite(spread), axis=1))
-    return VarianceBins(np.array([x[0] for x in rows], int), np.array([x[1] for x in rows]),
-                        np.maximum(np.array([x[2] for x in rows]), 1e-12), np.array([x[3] for x in rows], float),
-                        spread, float(meas.clip_level), labels, phase=phase)
+    observed = np.maximum(np.array([x[2] for x in rows]), 1e-12)
+    phase = None if scene is None else phase_moments(labels, scene, len(rows), np.all(np.isfinite(spread), axis=1)
+                                                     | (observed > PHASE_VARIANCE_MAX))
+    return VarianceBins(np.array([x[0] for x in rows], int), np.array([x[1] for x in rows]), observed,
+                        np.array([x[3] for x in rows], float), spread, float(meas.clip_level), labels, phase=phase)
 
 
 #: Side of the scene estimate that measures a pattern's size: wide enough to leave almost all of a pattern

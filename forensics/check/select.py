@@ -227,7 +227,9 @@ def _problem(before: CheckResult, after: CheckResult) -> str | None:
 def _try(ev: Evidence, effects: list[Effect], current: CheckResult, name: str) -> tuple[CheckResult | None, str]:
     """Fit ``effects`` + ``name``; the new check if it improves on ``current``, else None and why not."""
     try:
-        new = run_check(ev, [*effects, *resolve_effects([name])])
+        # (assuming the converter the current model found: the new model's noise fit picks one again, and a change
+        # costs it a second fit — on EMVA 1288's dithered series at every step)
+        new = run_check(ev, [*effects, *resolve_effects([name])], dither=(current.quantiser or {}).get("dither"))
     except (ForensicsError, ArithmeticError, ValueError, RuntimeError) as exc:  # the fit reports a problem
         return None, f"adding {name} failed: {exc}"
     problem = _problem(current, new)
