@@ -150,10 +150,14 @@ def phase_moments(labels: np.ndarray, levels: np.ndarray, n_bins: int, skip: np.
     lab = labels[m].astype(np.int64)
     keep = wanted[lab]
     lab, v = lab[keep], levels[m][keep]
-    theta = 2.0 * np.pi * (v - np.floor(v))
+    c1 = np.cos(2.0 * np.pi * (v - np.floor(v)))
     count = np.bincount(lab, minlength=n_bins)[:n_bins].astype(float)
-    for k in range(HARMONICS + 1):
-        out[:, k] = np.bincount(lab, np.cos(k * theta), minlength=n_bins)[:n_bins] / np.maximum(count, 1.0)
+    # cos kθ by the Chebyshev recurrence cos (k+1)θ = 2 cos θ cos kθ − cos (k−1)θ: one cosine per pixel, not sixteen
+    prev, cur = np.ones_like(c1), c1
+    out[:, 0] = 1.0
+    for k in range(1, HARMONICS + 1):
+        out[:, k] = np.bincount(lab, cur, minlength=n_bins)[:n_bins] / np.maximum(count, 1.0)
+        prev, cur = cur, 2.0 * c1 * cur - prev
     out[(count == 0) | ~wanted] = np.nan
     return out
 
