@@ -39,25 +39,32 @@ def _result(effects, pixel, flagged, gof_pixel=0.5):
 
 
 def _fake(monkeypatch, table):
-    """run_check stand-in: the result for a model is looked up by its added effects."""
-    calls = []
+    """run_check stand-in: the result for a model is looked up by its added effects; returns the added effects of
+    each call and the converter each was told to assume."""
+    calls, told = [], []
 
-    def run_check(ev, effects):
+    def run_check(ev, effects, dither=None):
         added = tuple(e.key for e in effects if e.key not in {b.key for b in base_model()})
         calls.append(added)
         pixel, flagged = table[added]
-        return _result([e.key for e in effects], pixel, flagged)
+        result = _result([e.key for e in effects], pixel, flagged)
+        # each model finds the converter 0.5 DN wider than the one it was told to assume (a marker, not physics)
+        result.quantiser = {"dither": (dither or 0.0) + 0.5, "compared": True, "variance_chi2": {}}
+        told.append(dither)
+        return result
 
     monkeypatch.setattr(sel_mod, "run_check", run_check)
-    return calls
+    return calls, told
 
 
 def test_adds_flagged_candidates_until_nothing_is_flagged(monkeypatch):
-    _fake(monkeypatch, {(): (8.0, ["prnu", "dark_current"]), ("prnu",): (4.0, ["dark_current"]),
-                        ("prnu", "dark_current"): (1.02, [])})
+    _, told = _fake(monkeypatch, {(): (8.0, ["prnu", "dark_current"]), ("prnu",): (4.0, ["dark_current"]),
+                                  ("prnu", "dark_current"): (1.02, [])})
     sel = forward_select(None, base_model())
     assert [s.label for s in sel.steps] == ["base", "+prnu", "+dark_current"]
     assert sel.added == ["prnu", "dark_current"] and sel.reason == sel_mod.NOTHING_FLAGGED
+    # each added model's fit starts from the converter the model before it found
+    assert told == [None, 0.5, 1.0]
     assert sel.stopped == "nothing flagged"
     assert [s.error["pixel"] for s in sel.steps] == [8.0, 4.0, 1.02]
     assert sel.result.baseline is sel.steps[0].result
@@ -69,7 +76,7 @@ def test_adds_flagged_candidates_until_nothing_is_flagged(monkeypatch):
 
 
 def test_a_candidate_that_does_not_improve_is_skipped_once_then_the_next_is_tried(monkeypatch):
-    calls = _fake(monkeypatch, {(): (8.0, ["gain", "prnu"]), ("gain",): (7.99, ["prnu"]),
+    calls, _ = _fake(monkeypatch, {(): (8.0, ["gain", "prnu"]), ("gain",): (7.99, ["prnu"]),
                                 ("prnu",): (1.03, ["gain"]), ("prnu", "gain"): (1.03, ["gain"])})
     sel = forward_select(None, base_model())
     assert sel.added == ["prnu"]
@@ -93,7 +100,7 @@ def test_max_steps_and_a_failing_fit(monkeypatch):
     sel = forward_select(None, base_model(), max_steps=1)
     assert sel.added == ["prnu"] and sel.reason == sel_mod.MAX_STEPS and "dark_current" in sel.stopped
 
-    def broken(ev, effects):
+    def broken(ev, effects, dither=None):
         if len(effects) > len(base_model()):
             raise ValueError("singular")
         return _result([e.key for e in effects], 8.0, ["prnu"])
@@ -120,7 +127,7 @@ def test_unsettled_fits_and_lost_pixel_classes_are_refused(monkeypatch):
     fine.error["classes"] = {"normal": 1.0, "partial": None, "stuck": None}
     assert sel_mod._problem(before, fine) is None
 
-    def run_check(ev, effects):
+    def run_check(ev, effects, dither=None):
         return before if len(effects) == len(base_model()) else lost
 
     monkeypatch.setattr(sel_mod, "run_check", run_check)
