@@ -140,6 +140,12 @@ def _numbers(rep: Report, result: CheckResult, runs: list[tuple[str, CheckResult
                  for p in result.patterns]
               + [[p.effect, f"{p.name} (size in the frames, split halves)", p.size, p.size_se, ""]
                  for p in result.patterns if p.size is not None])
+    q = getattr(result, "quantiser", None)
+    if q and q.get("compared"):
+        # the converter the variance channel shows, and how clearly (its χ² under each converter compared)
+        rep.table(["converter", "uniform dither before rounding (DN)", "variance χ² under each converter"],
+                  [["rounding, dithered" if q["dither"] else "rounding, no dither", q["dither"],
+                    "; ".join(f"{k}: {v:.5g}" for k, v in q["variance_chi2"].items())]])
     rep.heading("Candidates")
     for name, r in runs:
         rep.table(["rank", "effect", "predicted ΔBIC", "ΔBIC as far as both halves show it", "p (Holm)", "flagged",

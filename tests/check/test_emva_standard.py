@@ -151,3 +151,10 @@ def test_a_converter_without_dither(tmp_path):
     final = check_standard(folder, series)
     assert final.quantiser["dither"] == 0.0 and final.quantiser["compared"]
     assert final.gof["variance"] >= 0.001, final.gof
+    # the summary, the report and the JSON say which converter was found
+    from cli.model import format_check
+    from forensics.report.check import check_report
+
+    assert "converter                        rounding, no dither" in format_check(final)
+    assert "<td>rounding, no dither</td>" in check_report(final).html()
+    assert final.to_dict()["quantiser"]["dither"] == 0.0
