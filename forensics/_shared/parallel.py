@@ -215,7 +215,8 @@ class Executor:
     scheduler
         Dask scheduler address, or ``"local"`` for a :class:`distributed.LocalCluster`.
     retries
-        Times an item is resubmitted after its worker died.
+        Times an item is resubmitted after its worker died (processes), or after its input was lost with one
+        (Dask: scattered data a killed worker held).
     window
         Items in flight at once (default 4 per worker process, 16 per Dask thread): bounds the memory of
         out-of-order results.
@@ -458,9 +459,10 @@ class Executor:
         token = os.urandom(4).hex()
         queue = list(todo)
         index_of: dict[str, int] = {}
+        lost = {i: 0 for i in todo}
 
         def submit(i: int) -> Any:
-            key = f"forensics-{name}-{token}-{i}"
+            key = f"forensics-{name}-{token}-{i}" + (f"-{lost[i]}" if lost[i] else "")
             index_of[key] = i
             # No task retries: an exception is an answer (bad input); a lost worker is rescheduled by the
             # scheduler itself (distributed.scheduler.allowed-failures).
@@ -472,7 +474,21 @@ class Executor:
         try:
             for future, value in stream:
                 i = index_of.pop(future.key)
+                status = future.status
                 future.release()
+                if status != "finished":
+                    # cancelled, not failed (a failure raises here): its input was lost with a worker — the
+                    # scheduler cannot recover scattered data a killed worker held, and as_completed then yields
+                    # the FutureCancelledError as if it were the item's result (a killed worker's run wrote an
+                    # output without the items that depended on it).  Scatter the shared data again and resubmit.
+                    lost[i] += 1
+                    if lost[i] > self.retries:
+                        raise RuntimeError(f"item {i} of {name} was lost {lost[i]} times with its workers; "
+                                           "check the cluster's workers and their memory")
+                    if shared is not _NO_SHARED:
+                        kwargs["shared"] = client.scatter(shared, broadcast=True, hash=False)
+                    stream.add(submit(i))
+                    continue
                 if queue:
                     stream.add(submit(queue.pop(0)))
                 yield i, value

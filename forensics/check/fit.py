@@ -107,13 +107,14 @@ def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24,
     covers_normal = any(bool(np.any((p.blocks >= 0) & (pixels.classes[-1] == NORMAL)))
                         for e in device.model.effects if is_pixel(e) and e.null_values() for p in e.patterns(device))
     catalogue = ev.redetect(device) if covers_normal else pixels.catalogue
-    if not same_catalogue(catalogue, pixels.catalogue) or fitted.quantiser.dither != fitted.quantiser.assumed:
+    same = same_catalogue(catalogue, pixels.catalogue)
+    if not same or fitted.quantiser.dither != fitted.quantiser.assumed:
         # the refit starts where the first fit ended: its global parameters and its patterns' values at the
         # same pixels (the new classes move them little; from the patterns' cold start the refit of the
         # hidden dark-current dataset spent four cycles finding them again, from the first fit's two); after the
         # variance channel changed its mind on the converter, so that the pixel channel's means near the bounds
         # follow it too
-        fitted = _fit_once(ev, ev.pixels(catalogue), fitted.effects, max_cycles,
+        fitted = _fit_once(ev, pixels if same else ev.pixels(catalogue), fitted.effects, max_cycles,
                            start=fitted_values(fitted.effects), patterns_from=fitted.device,
                            dither=device.model.dither)
     return fitted
@@ -229,12 +230,11 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         effects[i] = bespoke_fit(effects[i], ev)
     if start is not None:
         effects = warm_start(effects, start, p_idx)
-    # a first look at the noise and the converter (the pixel channel's censored means near 0 and full scale
-    # depend on both)
+    # a first look at the noise (the pixel channel's censored means near 0 and full scale depend on it), under the
+    # converter assumed: the bins' fractional levels are the neighbours' until the fit gives the pixels' own, and
+    # with an offset pattern those show a swing the pixels do not have (a first look comparing converters took the
+    # dither on 8-bit data without one); the converters are compared once the pixels' levels are known
     n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
-    # (under the converter assumed: the bins' fractional levels are the neighbours' until the fit gives the pixels'
-    # own, and with a DSNU those would show a swing the pixels do not have — a first look comparing converters
-    # chose the dither on 8-bit data without one)
     first = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx],
                          on_device(device, effects))
     assumed = device.model.dither

@@ -386,8 +386,9 @@ def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
     on the readout never touching a bound.  ``(bins, variances)``.
 
     The variance V(μ) is even and periodic in the level (period 1 DN, away from the bounds): evaluated at
-    :data:`PHASE_POINTS` fractions a 1/32 DN apart (each at the level within ½ DN of the bin's), its cosine coefficients a_k are their discrete
-    transform, and the bin's mean is Σ a_k·mean cos(2πk·μ) with the means of its pixels (``bins.phase``,
+    :data:`PHASE_POINTS` fractions a 1/32 DN apart (each at the level within ½ DN of the bin's), its cosine
+    coefficients a_k are their discrete transform, and the bin's mean is Σ a_k·mean cos(2πk·μ) with the means of
+    its pixels (``bins.phase``,
     :func:`~forensics.check.pixels.phase_moments`) — the trigonometric interpolation of V, exact while its harmonics
     above :data:`~forensics.check.pixels.HARMONICS` vanish (they fall as exp(−2π²k²σ²)).
 

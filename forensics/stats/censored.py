@@ -110,7 +110,8 @@ MIN_INNER_MASS = 1e-12
 
 
 def readout_moments(mu, sigma, lo: int, hi: int, truncate: bool = False,
-                    reach: float = 10.0, closed_form: bool = True, dither: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                    reach: float = 10.0, closed_form: bool = True,
+                    dither: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Mean and variance of the readout y = rint(clip(x, lo, hi)), x ~ N(mu, sigma²), integer lo < hi.
 
     P(y = k) = Φ((k+½−μ)/σ) − Φ((k−½−μ)/σ) for lo < k < hi; the bounds take the tails.  Only the levels

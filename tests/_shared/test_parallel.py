@@ -81,6 +81,31 @@ def test_dask_cluster_matches_in_process(dask_cluster):
     assert len(pids) == 2  # both workers took part
 
 
+@pytest.mark.slow
+def test_a_dask_item_cancelled_under_it_is_computed_again(dask_cluster):
+    """An item whose future is cancelled mid-run — what the scheduler does when a killed worker held scattered data
+    it needs ("lost scattered data, which can't be recovered") — is submitted again with the shared data scattered
+    anew.  Before, ``as_completed`` yielded its FutureCancelledError as the item's result: a run whose worker was
+    killed wrote an output without the images that depended on it (seen once in CI)."""
+    from distributed import Future
+
+    cancelled = []
+
+    def cancel_running(iterable, total=None, desc=None):
+        for count, item in enumerate(iterable):
+            if count == 1:  # one item done: cancel every item still on a worker
+                keys = [k for ks in ex.client.processing().values() for k in ks]
+                ex.client.cancel([Future(k, client=ex.client) for k in keys])
+                cancelled.extend(keys)
+            yield item
+
+    shared = np.arange(10.0)
+    with Executor("dask", scheduler=dask_cluster.scheduler_address, window=4) as ex:
+        got = list(ex.map(workitems.scaled_slowly, range(8), shared=shared, progress=cancel_running))
+    assert cancelled  # the fault really happened mid-run
+    assert got == [45.0 * i for i in range(8)]
+
+
 def test_small_work_runs_in_process_unless_workers_are_given():
     from forensics._shared.parallel import open_executor
 
