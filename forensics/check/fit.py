@@ -19,7 +19,7 @@ from forensics.check.arrivals import DefectCounts
 from forensics.check.classes import NORMAL, QUANT_VAR
 from forensics.check.evidence import Evidence
 from forensics.check.identifiability import bounded_step, estimates
-from forensics.check.params import bespoke_fit, is_pixel, on_device, unit, with_clipped_param, with_param
+from forensics.check.params import bespoke_fit, is_pixel, on_device, on_model, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
 from forensics.check.pixels import PixelData, VarianceBins, log_variance, pattern_size, with_latent_spread
 from forensics.check.prediction import PHASE_SIGMA, SCENE_SHIFT, predicted_variance
@@ -237,7 +237,6 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
     n_idx = [i for i, e in enumerate(effects) if e.stage == Stage.NOISE]
     first = fit_variance(pixels.bins, ev.rgroups, [bespoke_fit(effects[i], ev) for i in n_idx],
                          on_device(device, effects))
-    assumed = device.model.dither
     for i, e in zip(n_idx, first.effects):
         effects[i] = e
     pix = fit_pixels(ev, pixels, device, effects, p_idx, max_cycles)
@@ -263,7 +262,6 @@ def _fit_once(ev: Evidence, pixels: PixelData, effects: Sequence[Effect], max_cy
         pixels.bins, ev.predictor.predict(with_local_values(device, pix.local, effects, spread_values), pixels, "a",
                                           clip=False)))
     noise, device, quantiser = fit_noise_and_quantiser(pixels.bins, ev.rgroups, [effects[i] for i in n_idx], device)
-    quantiser = dataclasses.replace(quantiser, assumed=assumed)
     for i, e in zip(n_idx, noise.effects):
         effects[i] = e
     device = on_device(device, effects)
@@ -690,7 +688,7 @@ class QuantiserChoice:
 
     dither: float  #: the width of the uniform dither before rounding (DN; 0: none)
     chi2: dict[float, float]  #: the variance channel's χ² under each converter compared (empty: not compared)
-    assumed: float = 0.0  #: the converter the pixel channel was fitted with
+    assumed: float  #: the converter the fit assumed until then (the device's: the pixel channel was fitted with it)
 
     def to_dict(self) -> dict[str, Any]:
         return {"dither": self.dither, "compared": bool(self.chi2),
@@ -714,10 +712,9 @@ def fit_noise_and_quantiser(bins: VarianceBins, rgroups: Sequence[Group], noise:
     (:func:`~forensics.check.prediction.phase_averaged`); the wrong one moves the conversion gain.  The device's
     converter is fitted first (the others start from its fit: the noise moves little, σ² by about the dither's
     d²/12); another than the device's is taken only where it fits the bins to :data:`CONVERTER_FIT` per bin."""
-    if not quantiser_shows(bins):
-        fit = fit_variance(bins, rgroups, noise, device)
-        return fit, device, QuantiserChoice(device.model.dither, {})
     assumed = device.model.dither
+    if not quantiser_shows(bins):
+        return fit_variance(bins, rgroups, noise, device), device, QuantiserChoice(assumed, {}, assumed)
     fits = {assumed: fit_variance(bins, rgroups, noise, device)}
     for d in DITHERS:
         if d not in fits:
@@ -727,12 +724,11 @@ def fit_noise_and_quantiser(bins: VarianceBins, rgroups: Sequence[Group], noise:
     chosen = best if chi2[best] < chi2[DITHERS[0]] - DITHER_MARGIN else DITHERS[0]
     if chosen != assumed and chi2[chosen] > CONVERTER_FIT * len(bins.observed):
         chosen = assumed  # a model that misfits the bins either way says nothing about the converter
-    return fits[chosen], with_dither(device, chosen), QuantiserChoice(chosen, chi2)
+    return fits[chosen], with_dither(device, chosen), QuantiserChoice(chosen, chi2, assumed)
 
 
 def with_dither(device: Device, dither: float) -> Device:
     """``device`` (sharing its times, catalogue and state) with a converter that dithers by ``dither`` DN."""
     if device.model.dither == dither:
         return device
-    return Device(model=dataclasses.replace(device.model, dither=float(dither)), times=device.times,
-                  catalogue=device.catalogue, state=device.state)
+    return on_model(device, dataclasses.replace(device.model, dither=float(dither)))

@@ -36,11 +36,14 @@ def with_clipped_param(effects: Sequence[Effect], index: int, name: str, value: 
 
 
 def on_device(device: Device, effects: Sequence[Effect]) -> Device:
-    """A device for ``effects`` sharing ``device``'s times, catalogue and state."""
-    model = device.model
-    return Device(model=SensorModel(shape=model.shape, bit_depth=model.bit_depth, effects=list(effects), t0=model.t0,
-                                    dither=model.dither),
-                  times=device.times, catalogue=device.catalogue, state=device.state)
+    """A device for ``effects`` (the rest of its model as ``device``'s) sharing ``device``'s times, catalogue and
+    state."""
+    return on_model(device, dataclasses.replace(device.model, effects=list(effects)))
+
+
+def on_model(device: Device, model: SensorModel) -> Device:
+    """A device for ``model`` sharing ``device``'s times, catalogue and state."""
+    return Device(model=model, times=device.times, catalogue=device.catalogue, state=device.state)
 
 
 def bespoke_fit(effect: Effect, evidence: Evidence) -> Effect:
