@@ -21,7 +21,6 @@ import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import stats
 
 from forensics.check.classes import NORMAL, dark_groups
 from forensics.check.result import ParamEstimate
@@ -61,6 +60,8 @@ def carried_rate(rate: ParamEstimate, t_double: ParamEstimate, t_ref: float, tem
 
 def median_interval(values: np.ndarray) -> tuple[float, list[float]]:
     """The median of ``values`` and its distribution-free 95 % interval (order statistics, binomial ½)."""
+    from scipy import stats  # here: importing scipy.stats costs 0.3 s, and most checks never get here
+
     x = np.sort(values)
     n = x.size
     lo = int(stats.binom.ppf(0.025, n, 0.5))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import stats
+from forensics.stats.tails import chi2_sf
 
 from forensics._shared.errors import InputError
 from forensics.check.classes import CLASSES, STK
@@ -80,7 +80,7 @@ def _candidate(effect: Effect, name: str, tests: list[ChannelTest], n_obs: int, 
         dbic = lm - penalty
         if any(t.confirmed is not None for t in tests):
             confirmed = sum(t.lm if t.confirmed is None else min(t.lm, t.confirmed) for t in tests) - penalty
-        p_raw = float(stats.chi2.sf(lm, df))
+        p_raw = float(chi2_sf(lm, df))
         if len(tests) == 1 and tests[0].boundary:
             p_raw *= 0.5
     else:

@@ -9,7 +9,7 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from forensics.stats.tails import chi2_sf, f_sf, norm_isf
 
 import forensics.stats.spatial as sp
 from forensics.check.classes import CLASSES, NORMAL, PART, QUANT_VAR, STK, dark_groups
@@ -76,7 +76,7 @@ def pixel_gof(ev: Evidence, fitted: FittedModel) -> tuple[float, np.ndarray, lis
                 continue
             chi += float(z[r][m].sum()) ** 2 / v
             nb += 1
-    p_a = float(stats.chi2.sf(chi, nb)) if nb else 1.0
+    p_a = float(chi2_sf(chi, nb)) if nb else 1.0
     if nb:
         rows.append(CheckRow("pixel: mean residual per condition (partially stuck; normal in dark frames), χ²/df", chi / nb, 1.0,
                              (chi - nb) / math.sqrt(2 * nb)))
@@ -101,7 +101,7 @@ def pixel_gof(ev: Evidence, fitted: FittedModel) -> tuple[float, np.ndarray, lis
     # own and left out of the F-test, whose null distribution this bound leaves all but unchanged (1 % of
     # correct fits lose one pixel); a pattern spread over many pixels still moves the bulk.
     n_use = int(use.sum())
-    bound = float(stats.norm.isf(0.005 / max(n_use, 1)))
+    bound = float(norm_isf(0.005 / max(n_use, 1)))
     lone = use & (np.abs(u) > bound)
     use = use & ~lone
     n_pix = int(use.sum())
@@ -110,7 +110,7 @@ def pixel_gof(ev: Evidence, fitted: FittedModel) -> tuple[float, np.ndarray, lis
         within = float(ss_within[use].sum() / df_within[use].sum())
         ratio = between / max(within, 1e-12)
         dfw = float(df_within[use].sum())
-        p_b = float(stats.f.sf(ratio, n_pix, dfw))
+        p_b = float(f_sf(ratio, n_pix, dfw))
         rows.append(CheckRow("pixel: per-pixel consistency (between / within)", ratio, 1.0,
                              (ratio - 1) / math.sqrt(2 / n_pix + 2 / dfw)))
         rows.append(CheckRow(f"pixel: pixels with a constant offset beyond |z| {bound:.3g} (undetected defects; "
@@ -187,7 +187,7 @@ def variance_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, float
         rows.append(CheckRow("variance: slope of ln(observed/predicted) vs level (per 1000 DN)",
                              float(np.sum(w * c * e) / np.sum(w * c * c) * 1000), 0.0, slope_z))
     rows.append(CheckRow("variance: χ²/df of ln variance", chi / df, 1.0, (chi - df) / math.sqrt(2 * df)))
-    return float(np.sqrt(np.mean(e * e))), float(stats.chi2.sf(chi, df)), rows
+    return float(np.sqrt(np.mean(e * e))), float(chi2_sf(chi, df)), rows
 
 
 def growth_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, float | None, list[CheckRow]]:
@@ -202,7 +202,7 @@ def growth_gof(ev: Evidence, fitted: FittedModel) -> tuple[float | None, float |
     sims = fitted.sims.get("deviance")
     scale = float(np.mean(sims)) / df if sims is not None and len(sims) else 1.0
     scale = max(scale, 1e-6)
-    p = float(stats.chi2.sf(dev / scale, df))
+    p = float(chi2_sf(dev / scale, df))
     pearson = float(np.sum((obs[used] - exp[used]) ** 2 / np.maximum(exp[used], 1e-9)))
     pred_disp = float(np.mean(fitted.sims["pearson"])) / df if sims is not None else 1.0
     rows.append(CheckRow("growth: Poisson deviance / df", dev / df, scale, (dev / scale - df) / math.sqrt(2 * df)))

@@ -22,7 +22,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage
+
+from forensics.stats.tails import f_sf
 
 import forensics.stats.spatial as sp
 from forensics._shared.arrays import grey_mean, infer_full_scale
@@ -957,5 +959,5 @@ def level_drift(blocks: np.ndarray | Sequence[np.ndarray]) -> LevelDrift:
         return LevelDrift(0.0, 0.0, 1.0)
     ms_f, ms_e = ss_f / df_f, ss_e / df_e
     f = ms_f / ms_e
-    p = float(stats.f.sf(f, df_f, df_e))
+    p = float(f_sf(f, df_f, df_e))
     return LevelDrift(max(ms_f - ms_e, 0.0) / float(np.mean(n_blocks)), f, p)

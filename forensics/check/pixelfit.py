@@ -5,7 +5,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
+from forensics.stats.tails import chi2_isf
 
 from forensics.check.joint_solve import coupled_forward, coupled_step
 from forensics.check.evidence import Evidence
@@ -67,7 +67,7 @@ def drop_unscored_misfits(wp: np.ndarray, w: np.ndarray, y: np.ndarray, mu: np.n
     if not fit.any():
         return False
     scale = max(1.0, float(np.median(chi[fit] / df[fit])))
-    limit = np.where(df >= 1, scale * stats.chi2.isf(UNSCORED_MISFIT_P, np.maximum(df, 1)), np.inf)
+    limit = np.where(df >= 1, scale * chi2_isf(UNSCORED_MISFIT_P, np.maximum(df, 1)), np.inf)
     bad = fit & (chi > limit)
     if not bad.any():
         return False

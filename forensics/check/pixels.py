@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import ndimage, signal, special
+import scipy.fft
+from scipy import ndimage, special
 
 from forensics.check.classes import NORMAL, PART, QUANT_VAR, STK, class_maps, dark_groups
 from forensics.check.measurements import Group, Measurements
@@ -574,7 +575,20 @@ def wide_scene(images: np.ndarray, size: int = WIDE_SCENE) -> np.ndarray:
     kernel = loo_quadratic_kernel(size)  # symmetric: correlation and convolution agree
     e = size // 2
     padded = np.pad(images, ((0, 0), (e, e), (e, e)), mode="symmetric")  # ndimage's "reflect"
-    return signal.fftconvolve(padded, kernel[None], mode="valid", axes=(1, 2))
+    return _fft_convolve_valid(padded, kernel)
+
+
+def _fft_convolve_valid(stack: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """``scipy.signal.fftconvolve(stack, kernel[None], mode="valid", axes=(1, 2))``, step for step (the same
+    transform sizes and crops: the same bits), without importing ``scipy.signal`` — it imports ``scipy.stats``,
+    0.3–0.4 s of every model check for this one call."""
+    full = [stack.shape[a] + kernel.shape[a - 1] - 1 for a in (1, 2)]
+    fshape = [scipy.fft.next_fast_len(n, True) for n in full]
+    spectrum = scipy.fft.rfftn(stack, fshape, axes=(1, 2)) * scipy.fft.rfftn(kernel[None], fshape, axes=(1, 2))
+    out = scipy.fft.irfftn(spectrum, fshape, axes=(1, 2))[:, :full[0], :full[1]]
+    valid = [stack.shape[a] - kernel.shape[a - 1] + 1 for a in (1, 2)]
+    start = [(f - v) // 2 for f, v in zip(full, valid)]
+    return out[:, start[0]:start[0] + valid[0], start[1]:start[1] + valid[1]]
 
 
 def uncensored_conditions(meas: Measurements, n: int) -> np.ndarray:

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, stats
+from forensics.stats.tails import chi2_ppf
 
 from forensics.check.streams import PATTERN_SIZE_STREAM
 from forensics.check.classes import NORMAL, STK
@@ -46,6 +46,8 @@ def random_effect_lr(zb: np.ndarray, ab: np.ndarray) -> tuple[float, float]:
 
     lo = math.log(1e-8 / ab.max())
     hi = math.log(1e8 / ab.min())
+    from scipy import optimize  # here, not at import: scipy.optimize takes 0.2–0.3 s to import
+
     res = optimize.minimize_scalar(negll, bounds=(lo, hi), method="bounded", options={"xatol": 1e-6})
     return max(0.0, -2.0 * res.fun), math.exp(res.x)
 
@@ -372,7 +374,7 @@ def score_growth(ev: Evidence, fitted: FittedModel, sigs: list[Signature]) -> li
         pearson_alt = float(np.sum((obs - mu_alt) ** 2 / mu_alt))
         df_alt = max(len(obs) - (0 if M is None else M.shape[0]) - 1, 1)
         # quasi-Poisson dispersion, applied only when the counts are clearly over-dispersed (pre-test at 1 %)
-        phi = pearson_alt / df_alt if pearson_alt > stats.chi2.ppf(0.99, df_alt) else 1.0
+        phi = pearson_alt / df_alt if pearson_alt > chi2_ppf(0.99, df_alt) else 1.0
         lm = u * u / info / phi
         out.append(ChannelTest("growth", lm, 1, int(max(obs.sum(), 1)),
                                f"{s.name}: Poisson score z {u / math.sqrt(info * phi):+.3g} on {len(obs)} count "

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import stats
+from forensics.stats.tails import chi2_isf
 
 from forensics.check.classes import NORMAL, QUANT_VAR, dark_groups
 from forensics.check.measurements import Group, Measurements
@@ -100,7 +100,7 @@ def robust_variance_line(level: np.ndarray, v: np.ndarray, df: np.ndarray | int,
     noise grows with their level — are judged against the line at their own level, not the bulk's.
     """
     df_arr = np.maximum(np.broadcast_to(np.asarray(df, float), v.shape), 1.0)
-    cut = stats.chi2.isf(OUTLIER_P, df_arr) / df_arr
+    cut = chi2_isf(OUTLIER_P, df_arr) / df_arr
     median = float(np.median(v)) if v.size else 0.0
     a, b = median, 0.0
     keep = np.ones(v.shape, bool)

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import stats
+from forensics.stats.tails import chi2_sf
 
 from forensics._shared.errors import InputError, UsageError
 from forensics._shared.progress import Progress, no_progress
@@ -430,7 +430,7 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
         estimate = ParamEstimate(p0.effect, p0.name, float(theta[i]), se, p0.unit, cov=covs)
         q, df, p_same, spread = scalar_heterogeneity(per_vals[i], float(theta[i]))
         out.append(TiledParam(estimate, len(per_vals[i]), q, df, p_same, spread))
-    p_joint = float(stats.chi2.sf(q_joint, joint_df)) if joint_df >= 1 else None
+    p_joint = float(chi2_sf(q_joint, joint_df)) if joint_df >= 1 else None
     return out, (q_joint if joint_df >= 1 else None), max(joint_df, 0), p_joint
 
 
@@ -479,7 +479,7 @@ def scalar_heterogeneity(values: Sequence[tuple[float, float]], centre: float
     q_mean = float(np.sum(w * (v - mean) ** 2))
     c = float(np.sum(w) - np.sum(w * w) / np.sum(w))
     tau = float(np.sqrt(max((q_mean - df) / c, 0.0))) if c > 0 else None
-    return q, df, float(stats.chi2.sf(q, df)), tau
+    return q, df, float(chi2_sf(q, df)), tau
 
 
 def combine_pattern_sizes(tiles: Sequence[TileResult]) -> list[TiledPattern]:
@@ -545,7 +545,7 @@ def combine_gof(tiles: Sequence[TileResult]) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
     for key in keys:
         ps = [max(float(t.gof[key]), P_FLOOR) for t in tiles if not t.excluded and t.gof.get(key) is not None]
-        out[key] = float(stats.chi2.sf(-2.0 * float(np.sum(np.log(ps))), 2 * len(ps))) if ps else None
+        out[key] = float(chi2_sf(-2.0 * float(np.sum(np.log(ps))), 2 * len(ps))) if ps else None
     return out
 
 
@@ -569,7 +569,7 @@ def combine_candidates(tiles: Sequence[TileResult]) -> list[CombinedCandidate]:
             if c.delta_bic_confirmed is not None:
                 patterns.add(c.effect)
     names = list(sums)
-    p_raw = [float(stats.chi2.sf(sums[n][0], sums[n][1])) for n in names]
+    p_raw = [float(chi2_sf(sums[n][0], sums[n][1])) for n in names]
     p_adj = holm_adjusted(p_raw) if names else np.array([])
     confirmed = {n: float(sums[n][5]) if n in patterns else None for n in names}
     out = [CombinedCandidate(n, float(sums[n][0]), int(sums[n][1]), float(sums[n][2]), p_raw[i], float(p_adj[i]),

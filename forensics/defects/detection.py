@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage
 
 from forensics._shared.arrays import full_scale, grey_mean
 from forensics._shared.errors import InputError, UsageError
@@ -43,6 +43,7 @@ from forensics._shared.limits import require_memory
 from forensics.sensor.catalogue import KIND_NAMES, PARTIAL, STUCK
 from forensics._shared.progress import Progress, no_progress
 from forensics.io.stack import StackStats, prefetch, stack_sets  # noqa: F401  (prefetch: kept importable from here)
+from forensics.stats.tails import norm_sf
 
 if TYPE_CHECKING:
     from forensics._shared.parallel import Executor
@@ -299,7 +300,7 @@ def accumulated_histogram(values: np.ndarray, center: float, scale: float, top: 
     above_top = int(np.count_nonzero(values > hi))
     counts = np.cumsum(np.concatenate([hist, [above_top]])[::-1])[::-1]
     counts[0] = np.count_nonzero(values > center)
-    expected = values.size * stats.norm.sf((edges - center) / max(scale, 1e-12))
+    expected = values.size * norm_sf((edges - center) / max(scale, 1e-12))
     return edges, counts.astype(np.int64), expected
 
 
@@ -343,7 +344,7 @@ def _lattices(shape: tuple[int, int], cfa: str | None) -> list[tuple[str, tuple[
 
 def expected_false_alarms(n_pixels: int, sigma: float) -> float:
     """False partially-stuck alarms expected among ``n_pixels`` at a threshold of ``sigma`` under the normal model."""
-    return float(n_pixels * stats.norm.sf(sigma))
+    return float(n_pixels * norm_sf(sigma))
 
 
 def detect(stack: StackStats, q: int = DEFAULT_Q, sigma: float | None = DEFAULT_SIGMA, tau: float | None = None,

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 #: Default confidence level of every interval.
 LEVEL = 0.95
@@ -28,6 +27,8 @@ def garwood(k: int, level: float = LEVEL) -> tuple[float, float]:
 
     ``[χ²_{α/2}(2k)/2, χ²_{1−α/2}(2k+2)/2]``, lower bound 0 for ``k = 0``.
     """
+    from scipy import stats  # here, not at import: scipy.stats costs 0.3 s, and the model check needs none of it
+
     if k < 0:
         raise ValueError("a Poisson count cannot be negative")
     alpha = 1.0 - level
@@ -38,6 +39,8 @@ def garwood(k: int, level: float = LEVEL) -> tuple[float, float]:
 
 def clopper_pearson(x: int, n: int, level: float = LEVEL) -> tuple[float, float]:
     """Exact (Clopper–Pearson) interval for a binomial proportion x/n."""
+    from scipy import stats  # here, not at import: scipy.stats costs 0.3 s, and the model check needs none of it
+
     alpha = 1.0 - level
     if n == 0:
         return 0.0, 1.0
@@ -52,6 +55,7 @@ def midp_binomial(x: int, n: int, level: float = LEVEL) -> tuple[float, float]:
     Less conservative than Clopper–Pearson; its coverage averages close to the
     nominal level (used for dating, where Clopper–Pearson's excess width adds up).
     """
+    from scipy import stats  # here, not at import: scipy.stats costs 0.3 s, and the model check needs none of it
     from scipy.optimize import brentq
 
     alpha = 1.0 - level
@@ -128,6 +132,8 @@ class TrendTest:
 
 def trend_test(new_counts: Sequence[int], times: Sequence[float], area_mp: float, level: float = LEVEL) -> TrendTest | None:
     """LR test of slope = 0 in log(rate) = b₀ + b₁·(interval midpoint − mean); None with < 2 intervals."""
+    from scipy import stats  # here, not at import: scipy.stats costs 0.3 s, and the model check needs none of it
+
     counts = np.asarray(new_counts, float)
     t = np.asarray(times, float)
     if len(counts) < 2:

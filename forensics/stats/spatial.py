@@ -20,7 +20,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, spatial
+from scipy import spatial
 
 Window = tuple[float, float, float, float]
 
@@ -188,6 +188,8 @@ def fit_pair_excess(radii: np.ndarray, excess: np.ndarray, chance: np.ndarray) -
         j = int(np.argmin(losses))
         if pis[j] <= 0:
             return 0.0, 1.0
+        from scipy import optimize  # here, not at import: scipy.optimize takes 0.2–0.3 s to import
+
         fine = optimize.minimize_scalar(lambda u: at(u, w)[1], bounds=(grid[j] - step, grid[j] + step),
                                         method="bounded", options={"xatol": 1e-6})
         v = float(fine.x) if fine.fun <= losses[j] else float(grid[j])
@@ -351,6 +353,8 @@ def fit_thomas_excess(radii: np.ndarray, k_observed: np.ndarray, sigma_max: floa
         return float(np.sum((k_observed**0.25 - model**0.25) ** 2))
 
     null_loss = float(np.sum((k_observed**0.25 - base**0.25) ** 2))
+    from scipy import optimize  # here, not at import: scipy.optimize takes 0.2–0.3 s to import
+
     best = None
     for s0 in (0.7, 1.5, 3.0, 6.0):
         a0 = max(float(np.max(k_observed - base)), 1.0)
