@@ -77,6 +77,11 @@ def measure(cmd: list[str], timeout: float, cwd: str | None = None, env: dict | 
     larger child of this process (emva1288's analysis of 12 MP frames, 18.8 GB, was reported for the check run
     after it too)."""
     load = os.getloadavg()[0]
+    if env is None:
+        # as users run it: pip compiles an installed wheel's modules, and a checkout caches them on first import.
+        # This machine sets PYTHONDONTWRITEBYTECODE=1, under which every run of the editable install compiled
+        # the whole package from source again (0.2–0.3 s per process, a tenth of a small series' check)
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     out = tempfile.TemporaryFile()
     started = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.PIPE, cwd=cwd, env=env, start_new_session=True)

@@ -41,7 +41,7 @@ from forensics.check.pixels import PixelData, VarianceBins
 from forensics.check.scene import kernel_estimate
 from forensics.sensor.catalogue import DefectCatalogue
 from forensics.sensor.model import Device, Effect, FrameContext, Stage
-from forensics.stats.censored import readout_moments, truncated_readout_mean
+from forensics.stats.censored import readout_moments, readout_variance_harmonics, truncated_readout_mean
 
 
 #: Key of :meth:`Predictor.scene_shift`'s frozen result in a fitted device's state (absent: no shift).
@@ -385,12 +385,13 @@ def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
     :data:`PHASE_SIGMA`: the quantised readout's exact variance averaged over their pixels' latent levels, conditional
     on the readout never touching a bound.  ``(bins, variances)``.
 
-    The variance V(μ) is even and periodic in the level (period 1 DN, away from the bounds): evaluated at
-    :data:`PHASE_POINTS` fractions a 1/32 DN apart (each at the level within ½ DN of the bin's), its cosine
-    coefficients a_k are their discrete transform, and the bin's mean is Σ a_k·mean cos(2πk·μ) with the means of
-    its pixels (``bins.phase``,
-    :func:`~forensics.check.pixels.phase_moments`) — the trigonometric interpolation of V, exact while its harmonics
-    above :data:`~forensics.check.pixels.HARMONICS` vanish (they fall as exp(−2π²k²σ²)).
+    The variance V(μ) is even and periodic in the level (period 1 DN, away from the bounds), V = Σ a_k cos(2πkμ), and
+    the bin's mean is Σ a_k·mean cos(2πk·μ) with the means of its pixels (``bins.phase``,
+    :func:`~forensics.check.pixels.phase_moments`), exact while V's harmonics above
+    :data:`~forensics.check.pixels.HARMONICS` vanish (they fall as exp(−2π²k²σ²)).  The a_k are in closed form
+    (:func:`~forensics.stats.censored.readout_variance_harmonics`) for a bin :data:`PHASE_CLOSED_REACH` σ from the
+    bounds; nearer, the discrete cosine transform of the exact truncated variance at :data:`PHASE_POINTS` fractions
+    a 1/32 DN apart (each at the level within ½ DN of the bin's).
 
     Why: below ≈ 1 DN of noise the rounding's variance swings with the level's fractional part (σ = 0.32 DN with
     EMVA 1288's dither: −5 % at a whole level, +5 % halfway; without it ±36 %), and a camera without a DSNU puts
@@ -401,6 +402,36 @@ def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
     if not rows.any():
         return idx[:0], np.zeros(0)
     at, s = idx[rows], sigma[rows]
+    coef = np.empty((at.size, bins.phase.shape[1]))
+    # away from the bounds the readout's variance is periodic in the level and its cosine coefficients have a closed
+    # form (readout_variance_harmonics, agreeing with the sum to 10⁻¹⁴ DN²); within reach of a bound the readouts
+    # that touched it are left out of the bins, so there the conditional variance is summed level by level
+    reach = bound_distance(bins, at, dither) >= PHASE_CLOSED_REACH * s
+    coef[reach] = readout_variance_harmonics(s[reach], dither, bins.phase.shape[1] - 1)
+    near = ~reach
+    if near.any():
+        coef[near] = _summed_harmonics(bins, at[near], s[near], dither)
+    return at, np.sum(coef * bins.phase[at], axis=1)
+
+
+#: A bin further than this many σ (its level less ½ DN for its pixels' spread and the dither's half-width) from
+#: both bounds' edges is predicted by the closed form: the readouts that would touch a bound carry < 10⁻¹² of the mass.
+PHASE_CLOSED_REACH = 7.0
+
+
+def bound_distance(bins: VarianceBins, idx: np.ndarray, dither: float) -> np.ndarray:
+    """How far (DN) the pixels of bins ``idx`` (within ½ DN of their level) and the dither's half-width stay from
+    the nearer bound's edge (½ DN inside 0 or the full scale); infinite without bounds."""
+    if bins.full_scale is None:
+        return np.full(idx.size, np.inf)
+    level = bins.level[idx]
+    edge = np.minimum(level - 0.5, float(round(float(bins.full_scale))) - 0.5 - level)
+    return edge - 0.5 - 0.5 * dither
+
+
+def _summed_harmonics(bins: VarianceBins, at: np.ndarray, s: np.ndarray, dither: float) -> np.ndarray:
+    """:func:`phase_averaged`'s coefficients from the exact truncated readout, summed at :data:`PHASE_POINTS`
+    fractions of a DN (each at the level within ½ DN of the bin's) and transformed."""
     frac = np.arange(PHASE_POINTS) / PHASE_POINTS
     level = bins.level[at][:, None]
     # each fraction at the level nearest the bin's (the period holds away from the bounds; near them this is the
@@ -416,8 +447,7 @@ def phase_averaged(bins: VarianceBins, idx: np.ndarray, sigma: np.ndarray,
                              reach=6.0)
     k = np.arange(bins.phase.shape[1])
     weight = np.where(k == 0, 1.0, 2.0) / PHASE_POINTS
-    coef = var @ (np.cos(2.0 * np.pi * np.outer(frac, k)) * weight[None, :])  # (bins, harmonics)
-    return at, np.sum(coef * bins.phase[at], axis=1)
+    return var @ (np.cos(2.0 * np.pi * np.outer(frac, k)) * weight[None, :])  # (bins, harmonics)
 
 
 def noise_variance(noise_effects: Sequence[Effect], level: np.ndarray, ctx: FrameContext,

@@ -132,3 +132,18 @@ def test_truncated_readout_deep_beyond_a_bound_against_a_wide_sum():
     mean, var = readout_moments(mu, sigma, 0, 65535, truncate=True)
     assert np.max(np.abs(mean - want_mean)) < 3e-4
     assert np.max(np.abs(var - want_var) / sigma**2) < 1e-3
+
+
+@pytest.mark.parametrize("dither", [0.0, 0.5, 1.0, 2.0])
+@pytest.mark.parametrize("sigma", [0.1, 0.3, 0.8])
+def test_the_variance_harmonics_are_the_summed_variance_away_from_the_bounds(sigma, dither):
+    # the closed form's cosine series at 64 fractions of a DN against the sum over levels (no bound within reach):
+    # equal to rounding (10⁻¹³ DN²); a sign or factor wrong in any term moves it by ≥ 10⁻⁴
+    from forensics.stats.censored import readout_variance_harmonics
+
+    mu = 100.0 + np.arange(64) / 64
+    exact = readout_moments(mu, sigma, 0, 4095, closed_form=False, dither=dither)[1]
+    coef = readout_variance_harmonics(np.full(3, sigma), dither, n=40)        # vectorised over σ
+    assert coef.shape == (3, 41)
+    series = np.cos(2 * np.pi * np.outer(mu, np.arange(41))) @ coef[1]
+    assert np.max(np.abs(series - exact)) < 1e-13
