@@ -303,13 +303,14 @@ def readout_mean(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: fl
     """The mean readout of pixels of latent mean ``mu`` over every frame, those at 0 or ``full_scale`` included:
     ``mu`` itself away from the bounds; within ``reach`` σ of one, the mean of the quantised, clipped readout."""
     return _near_bound_means(mu, ctx, full_scale, reach,
-                             lambda m, sd, hi, dither: readout_moments(m, sd, 0, hi, dither=dither)[0])
+                             lambda m, sd, hi, dither, _: readout_moments(m, sd, 0, hi, dither=dither)[0])
 
 
 def _near_bound_means(mu: np.ndarray, ctx: FrameContext, full_scale: float, reach: float,
-                      bounded: Callable[[np.ndarray, np.ndarray, int, float], np.ndarray]) -> np.ndarray:
-    """``mu`` clipped to [0, ``full_scale``], and ``bounded(μ, σ, hi, dither)`` within ``reach`` σ (and the
-    dither's half-width) of a bound (σ from the model's noise effects, the dither from its quantiser)."""
+                      bounded: Callable[..., np.ndarray]) -> np.ndarray:
+    """``mu`` clipped to [0, ``full_scale``], and ``bounded(μ, σ, hi, dither, sigma_of)`` within ``reach`` σ (and the
+    dither's half-width) of a bound (σ from the model's noise effects, the dither from its quantiser; ``sigma_of``
+    σ as a function of μ where the near values share one electronic offset, else None)."""
     noise = [e for e in ctx.device.model.effects if e.stage == Stage.NOISE]
     dither = ctx.device.model.dither
     out = np.clip(mu, 0.0, full_scale)
@@ -321,13 +322,19 @@ def _near_bound_means(mu: np.ndarray, ctx: FrameContext, full_scale: float, reac
         return out
     sigma = np.sqrt(noise_variance(noise, mu[near], ctx, elec[near]))
     m = mu[near]
+    # at one electronic offset the noise law makes σ a function of the level: the tables may run along it alone
+    e_near = elec[near]
+    sigma_of = None
+    if e_near.size and e_near.min() == e_near.max():
+        offset = float(e_near[0])
+        sigma_of = lambda level: np.sqrt(noise_variance(noise, level, ctx, offset))  # noqa: E731
     if m.size > 1 and m.min() == m.max() and sigma.min() == sigma.max():
         # a frame without pixel patterns (the base model, shot noise, dark current …): every pixel shares (μ, σ)
         # and one value serves them all — on the EMVA 1288 standard series, 40 % of the check's time went to
         # tabulating and interpolating the one value 76,800 times per condition
-        out[near] = bounded(m[:1], sigma[:1], hi, dither)[0]
+        out[near] = bounded(m[:1], sigma[:1], hi, dither, None)[0]
         return out
-    out[near] = bounded(m, sigma, hi, dither)
+    out[near] = bounded(m, sigma, hi, dither, sigma_of)
     return out
 
 
@@ -337,14 +344,15 @@ def quantiser_variance(dither: float) -> float:
     return QUANT_VAR * (1.0 + dither * dither)
 
 
-def distinct_readout_means(mu: np.ndarray, sigma: np.ndarray, hi: int, dither: float = 0.0) -> np.ndarray:
+def distinct_readout_means(mu: np.ndarray, sigma: np.ndarray, hi: int, dither: float = 0.0,
+                           sigma_of: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """:func:`~forensics.stats.censored.readout_moments`' truncated mean, as cheaply as it holds
     (:func:`~forensics.stats.censored.truncated_readout_mean`), one bound at a time: a table across both would
     span the whole range."""
     out = np.empty(mu.shape)
     for side in (mu < 0.5 * hi, mu >= 0.5 * hi):
         if side.any():
-            out[side] = truncated_readout_mean(mu[side], sigma[side], 0, hi, dither=dither)
+            out[side] = truncated_readout_mean(mu[side], sigma[side], 0, hi, dither=dither, sigma_of=sigma_of)
     return out
 
 

@@ -15,6 +15,7 @@ smoothed by the box (:func:`_edge_probabilities`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy.special import erfcx, ndtr
@@ -167,7 +168,8 @@ def _smoothed_sigma(sigma: np.ndarray, dither: float) -> np.ndarray:
     return sigma if dither <= 0 else np.sqrt(sigma * sigma + dither * dither / 12.0)
 
 
-def truncated_readout_mean(mu, sigma, lo: int, hi: int, reach: float = 10.0, dither: float = 0.0) -> np.ndarray:
+def truncated_readout_mean(mu, sigma, lo: int, hi: int, reach: float = 10.0, dither: float = 0.0,
+                           sigma_of: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """:func:`readout_moments`' truncated mean (conditional on lo < y < hi) for many values at once, as cheaply as
     it holds: the closed form where σ ≥ :data:`SMOOTH_SIGMA` allows it, a level's own value where one level holds
     the mass, and for the rest (σ below :data:`SMOOTH_SIGMA`, or means deep beyond a bound) a checked table
@@ -177,7 +179,8 @@ def truncated_readout_mean(mu, sigma, lo: int, hi: int, reach: float = 10.0, dit
     every pixel of every dark frame near 0 DN at every prediction.  On 16-bit frames with a 48 DN black level,
     20 DN of read noise and a DSNU of 48 DN, a fifth of the dark pixels sit 5–10 σ below 0, beyond the closed
     form's reach: summed, they were a sixth of the check's time; the table (one σ per frame) costs a few hundred
-    sums.  Without patterns of their own, pixels share their (μ, σ) and one sum serves them all."""
+    sums.  Without patterns of their own, pixels share their (μ, σ) and one sum serves them all.  ``sigma_of``:
+    σ as a function of μ where it is one (the noise law at a common electronic offset), for a table in μ alone."""
     mu, sigma = np.broadcast_arrays(np.asarray(mu, float), np.asarray(sigma, float))
     shape = mu.shape
     mu, sigma = mu.ravel(), np.maximum(sigma.ravel(), 1e-9)
@@ -188,7 +191,7 @@ def truncated_readout_mean(mu, sigma, lo: int, hi: int, reach: float = 10.0, dit
     rest = rest[~_single_level(mu, sigma, rest, lo, hi, True, reach, mean, var, dither)]
     if rest.size:
         m, s = mu[rest], sigma[rest]
-        table = tabulated_truncated_mean(m, s, lo, hi, dither=dither)
+        table = tabulated_truncated_mean(m, s, lo, hi, dither=dither, sigma_of=sigma_of)
         if table is not None:
             mean[rest] = table
         else:
@@ -384,6 +387,8 @@ TABLE_STEP = 0.025
 TABLE_TOLERANCE = 1e-6
 #: Values checked against the exact sum: every n-th (and the extremes of μ and σ).
 TABLE_CHECKS = 512
+#: A table along μ serves calls of at least twice this many values (its validation costs two sums a node).
+MIN_ALONG_MU = 64
 #: Below this σ (DN) no table: the readout's mean becomes a staircase in μ that no spline follows.
 TABLE_SIGMA_MIN = 0.1
 
@@ -445,8 +450,35 @@ def uniform_bicubic(starts: tuple[float, float], steps: tuple[float, float], tab
     return out
 
 
+def _composite_table(mu: np.ndarray, grid_mu: np.ndarray, sigma_of: Callable[[np.ndarray], np.ndarray], lo: int,
+                     hi: int, tolerance: float, dither: float) -> np.ndarray:
+    """The truncated mean at ``mu`` from a cubic along ``grid_mu`` whose nodes sit at their own σ = ``sigma_of(μ)``.
+
+    σ(μ) need not be smooth (a shot-noise law clipped at zero charge has a kink), so the cubic is checked at the
+    midpoint of every interval against the exact sum; values whose four nodes reach an interval that misses by
+    more than ``tolerance`` (or its neighbours) are summed exactly — the table holds where it is smooth."""
+    h = float(grid_mu[1] - grid_mu[0])
+    start = float(grid_mu[0])
+
+    def exact(m: np.ndarray) -> np.ndarray:
+        return readout_moments(m, np.maximum(np.asarray(sigma_of(m), float), 1e-9), lo, hi, truncate=True,
+                               closed_form=False, dither=dither)[0]
+
+    table = exact(grid_mu)
+    mid = grid_mu[:-1] + 0.5 * h
+    bad = np.abs(uniform_cubic(start, h, table, mid) - exact(mid)) > tolerance
+    if bad.any():  # an interval's neighbours share its nodes: they are summed too
+        bad = np.convolve(bad, np.ones(5), mode="same") > 0
+    out = uniform_cubic(start, h, table, mu)
+    interval = np.clip(np.floor((mu - start) / h).astype(np.intp), 0, bad.size - 1)
+    rough = bad[interval]
+    if rough.any():
+        out[rough] = exact(mu[rough])
+    return out
+
 def tabulated_truncated_mean(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int,
-                             tolerance: float = TABLE_TOLERANCE, dither: float = 0.0) -> np.ndarray | None:
+                             tolerance: float = TABLE_TOLERANCE, dither: float = 0.0,
+                             sigma_of: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray | None:
     """:func:`readout_moments`' truncated mean (conditional on lo < y < hi) by local cubics over a uniform grid of
     (μ, σ), checked against the exact sum; None where a table does not pay or does not hold (the caller sums).
 
@@ -455,37 +487,49 @@ def tabulated_truncated_mean(mu: np.ndarray, sigma: np.ndarray, lo: int, hi: int
     standard series (σ ≈ 0.5 DN, black level 1 DN).  The mean is smooth in μ and σ for σ ≳ 0.1 DN, so a table
     over the values' range (spacing :data:`TABLE_STEP`·σ_min, a few thousand exact sums) interpolated by local
     cubics (:func:`uniform_cubic`, :func:`uniform_bicubic`) costs ≈ 0.02–0.05 µs per value (scipy's splines took
-    three to six times that).  The table is trusted only after :data:`TABLE_CHECKS` of the values (every n-th,
-    plus the extremes) agree with the exact sum within ``tolerance``; it is refused when it would not be much
-    smaller than the values themselves.
+    three to six times that).
+
+    Where every value's σ is one number, or ``sigma_of(μ)`` (σ as a function of μ: the noise law at one
+    electronic offset — shot noise makes σ grow with the dark signal), the table runs along μ alone, its nodes at
+    their own σ (:func:`_composite_table`: four nodes a value instead of sixteen), and it is checked against the
+    exact sum at the midpoint of *every* interval, where a cubic's error peaks; values next to an interval that
+    misses (a kink of the noise law) are summed.  It serves calls of :data:`MIN_ALONG_MU` × 2 values and more.
+    Otherwise a (μ, σ) grid is trusted only after :data:`TABLE_CHECKS` of the values (every n-th, plus the
+    extremes) agree with the exact sum within ``tolerance``.  Either is refused when it would not be much smaller
+    than the values themselves, and the values' σ must be the function's (:data:`TABLE_CHECKS` of them compared).
     """
     mu, sigma = np.asarray(mu, float).ravel(), np.asarray(sigma, float).ravel()
-    if mu.size < 2 * TABLE_CHECKS:
+    if mu.size < 2 * MIN_ALONG_MU or not np.all(np.isfinite(mu)) or not np.all(np.isfinite(sigma)):
         return None
     s_lo, s_hi = float(sigma.min()), float(sigma.max())
-    if not TABLE_SIGMA_MIN <= s_lo or not np.all(np.isfinite(mu)):
+    if not TABLE_SIGMA_MIN <= s_lo:
         return None
     h = TABLE_STEP * s_lo
     grid_mu = np.arange(float(mu.min()) - 2 * h, float(mu.max()) + 3 * h, h)
-    one_sigma = s_hi - s_lo <= 1e-9 * s_lo
-    n_sigma = 1 if one_sigma else max(int(np.ceil((s_hi - s_lo) / h)) + 1, 4)
-    if grid_mu.size * n_sigma + TABLE_CHECKS > mu.size // 2:
-        return None  # the table and its check would cost a good part of the exact sums they replace
-    if one_sigma:  # a cubic in μ alone
-        table = readout_moments(grid_mu, s_lo, lo, hi, truncate=True, closed_form=False, dither=dither)[0]
-        out = uniform_cubic(float(grid_mu[0]), float(grid_mu[1] - grid_mu[0]), table, mu)
-    else:
-        # σ's grid reaches a step beyond both ends, as μ's does, so that every value has its 4 × 4 nodes around it
-        # (its step is at most TABLE_STEP·σ_min: the node below σ_min is still above 0)
-        h_sigma = (s_hi - s_lo) / (n_sigma - 1)
-        grid_sigma = s_lo + h_sigma * np.arange(-1, n_sigma + 1)
-        table = readout_moments(grid_mu[:, None], grid_sigma[None, :], lo, hi, truncate=True, closed_form=False,
-                                dither=dither)[0]
-        out = uniform_bicubic((float(grid_mu[0]), float(grid_sigma[0])),
-                              (float(grid_mu[1] - grid_mu[0]), h_sigma), table, mu, sigma)
     step = max(1, mu.size // TABLE_CHECKS)
     check = np.unique(np.concatenate([np.arange(0, mu.size, step),
                                       [np.argmin(mu), np.argmax(mu), np.argmin(sigma), np.argmax(sigma)]]))
+    if s_hi - s_lo <= 1e-9 * s_lo:  # one σ: a cubic in μ alone
+        sigma_of = lambda m: np.full(np.shape(m), s_lo)  # noqa: E731
+    if sigma_of is not None:
+        # a cubic along μ, its nodes at their own σ, checked at every interval's midpoint (a node and a midpoint
+        # per step: half the values at most, else the sums are as cheap); the values' σ must be the function's
+        if 4 * grid_mu.size > mu.size or not np.allclose(sigma_of(mu[check]), sigma[check], rtol=1e-12, atol=0.0):
+            return None
+        return _composite_table(mu, grid_mu, sigma_of, lo, hi, tolerance, dither)
+    if mu.size < 2 * TABLE_CHECKS:
+        return None
+    n_sigma = max(int(np.ceil((s_hi - s_lo) / h)) + 1, 4)
+    if grid_mu.size * n_sigma + TABLE_CHECKS > mu.size // 2:
+        return None  # the table and its check would cost a good part of the exact sums they replace
+    # σ's grid reaches a step beyond both ends, as μ's does, so that every value has its 4 × 4 nodes around it
+    # (its step is at most TABLE_STEP·σ_min: the node below σ_min is still above 0)
+    h_sigma = (s_hi - s_lo) / (n_sigma - 1)
+    grid_sigma = s_lo + h_sigma * np.arange(-1, n_sigma + 1)
+    table = readout_moments(grid_mu[:, None], grid_sigma[None, :], lo, hi, truncate=True, closed_form=False,
+                            dither=dither)[0]
+    out = uniform_bicubic((float(grid_mu[0]), float(grid_sigma[0])),
+                          (float(grid_mu[1] - grid_mu[0]), h_sigma), table, mu, sigma)
     exact = readout_moments(mu[check], sigma[check], lo, hi, truncate=True, closed_form=False, dither=dither)[0]
     if not np.max(np.abs(out[check] - exact)) <= tolerance:
         return None

@@ -122,3 +122,28 @@ def test_uniform_bicubic_is_exact_for_bicubics():
     x, y = rng.uniform(-0.9, 2.9, 1000), rng.uniform(0.45, 0.85, 1000)
     got = uniform_bicubic((-1.0, 0.4), (0.1, 0.05), f(gx[:, None], gy[None, :]), x, y)
     np.testing.assert_allclose(got, f(x, y), rtol=0, atol=1e-11)
+
+
+def test_a_table_along_mu_where_sigma_is_a_function_of_it():
+    # shot noise at one electronic offset: σ² = r² + g·max(μ − o, 0) — the table runs along μ with its nodes at their
+    # own σ; every value within the tolerance of the sum, also across the law's kink at μ = o (where a cubic misses by
+    # 7·10⁻⁵ DN: those values are summed), and a σ that is not the function's is caught by the check (refused)
+    rng = np.random.default_rng(6)
+    mu = rng.uniform(-0.5, 4.0, 60_000)
+
+    def sigma_of(level):
+        return np.sqrt(0.33**2 + 0.1 * np.maximum(level - 1.0, 0.0))
+
+    sigma = sigma_of(mu)
+    exact = readout_moments(mu, sigma, 0, 4095, truncate=True, dither=1.0)[0]
+    table = tabulated_truncated_mean(mu, sigma, 0, 4095, dither=1.0, sigma_of=sigma_of)
+    assert table is not None
+    assert np.max(np.abs(table - exact)) < TABLE_TOLERANCE
+    # the plain cubic through the same nodes misses at the kink: what the midpoint check is there for
+    from forensics.stats.censored import TABLE_STEP, uniform_cubic
+    h = TABLE_STEP * sigma.min()
+    grid = np.arange(mu.min() - 2 * h, mu.max() + 3 * h, h)
+    nodes = readout_moments(grid, sigma_of(grid), 0, 4095, truncate=True, dither=1.0)[0]
+    assert np.max(np.abs(uniform_cubic(grid[0], grid[1] - grid[0], nodes, mu) - exact)) > 10 * TABLE_TOLERANCE
+    wrong = sigma * (1.0 + 0.2 * rng.uniform(0.0, 1.0, mu.size))
+    assert tabulated_truncated_mean(mu, wrong, 0, 4095, dither=1.0, sigma_of=sigma_of) is None
