@@ -29,7 +29,14 @@ def chi2_sf(x, df):
 
 
 def chi2_isf(p, df):
-    """The x with P(X > x) = p for X ~ χ²(df) (``scipy.stats.chi2.isf``)."""
+    """The x with P(X > x) = p for X ~ χ²(df) (``scipy.stats.chi2.isf``).
+
+    A single ``p`` against many degrees of freedom (a threshold per pixel) is inverted once per distinct ``df``:
+    the inverse costs ≈ 0.4 µs a value, and 76,800 pixels share a handful of ``df``."""
+    df = np.asarray(df)
+    if np.ndim(p) == 0 and df.size > 64:
+        distinct, inverse = np.unique(df, return_inverse=True)
+        return special.chdtri(distinct, p)[inverse].reshape(df.shape)
     return _scalar(special.chdtri(df, p))
 
 

@@ -22,6 +22,9 @@ def test_the_tails_are_scipy_stats_bit_for_bit():
     assert np.array_equal(tails.norm_isf(p), stats.norm.isf(p))
     assert np.array_equal(tails.norm_sf(x - 3.0), stats.norm.sf(x - 3.0))
     assert isinstance(tails.chi2_sf(3.0, 2), float)
+    # a threshold per pixel: one inversion per distinct df, the same bits
+    df = np.random.default_rng(0).integers(1, 9, (300, 400))
+    assert np.array_equal(tails.chi2_isf(1e-6, df), stats.chi2.isf(1e-6, df))
 
 
 def test_the_model_check_imports_neither_scipy_stats_nor_scipy_signal():
