@@ -370,3 +370,20 @@ def test_the_row_medians_are_numpys_nanmedian_bit_for_bit():
         got = _row_medians(values)
         assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
 
+
+
+def test_a_reflection_is_found_whatever_the_exposure_and_black_level():
+    # an eye-like image spanning 0 … 1 with one small saturated reflection: the mask is the same after a change of
+    # exposure and black level (0.8 × grey + 0.08, as 20 grey levels at 8 bits) — at a fixed 0.9 of full scale the
+    # reflection (0.88 after the change) was no longer found at all
+    from forensics.impact.segment.common import reflection_mask
+
+    yy, xx = np.mgrid[0:240, 0:320]
+    img = np.full((240, 320), 0.55, np.float32)
+    img[np.hypot(xx - 160, yy - 120) < 90] = 0.35          # iris
+    img[np.hypot(xx - 160, yy - 120) < 35] = 0.0           # pupil
+    img[np.hypot(xx - 150, yy - 110) < 4] = 1.0            # the illuminator's reflection, on the pupil's edge
+    mask = reflection_mask(img)
+    assert mask[110, 150] and mask.sum() < 0.013 * img.size * 4
+    dimmer = (0.8 * img + 0.08).astype(np.float32)
+    assert np.array_equal(reflection_mask(dimmer), mask)
