@@ -26,6 +26,7 @@ from forensics.check.classes import NORMAL, dark_groups
 from forensics.check.result import ParamEstimate
 from forensics.check.singles import temperature_clusters
 from forensics.sensor.catalogue import PARTIAL
+from forensics.stats.tails import median_order_bounds
 
 if TYPE_CHECKING:
     from forensics.check.evidence import Evidence
@@ -60,12 +61,9 @@ def carried_rate(rate: ParamEstimate, t_double: ParamEstimate, t_ref: float, tem
 
 def median_interval(values: np.ndarray) -> tuple[float, list[float]]:
     """The median of ``values`` and its distribution-free 95 % interval (order statistics, binomial ½)."""
-    from scipy import stats  # here: importing scipy.stats costs 0.3 s, and most checks never get here
-
     x = np.sort(values)
     n = x.size
-    lo = int(stats.binom.ppf(0.025, n, 0.5))
-    hi = int(stats.binom.isf(0.025, n, 0.5))
+    lo, hi = median_order_bounds(n, 0.025)
     return float(np.median(x)), [float(x[max(lo - 1, 0)]), float(x[min(hi, n - 1)])]
 
 

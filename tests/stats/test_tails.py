@@ -27,6 +27,11 @@ def test_the_tails_are_scipy_stats_bit_for_bit():
     assert np.array_equal(tails.chi2_isf(1e-6, df), stats.chi2.isf(1e-6, df))
 
 
+def test_the_median_order_bounds_are_the_binomial_quantiles():
+    for n in [*range(1, 300), 1_000, 76_800, 76_801, 300_000]:
+        assert tails.median_order_bounds(n) == (int(stats.binom.ppf(0.025, n, 0.5)), int(stats.binom.isf(0.025, n, 0.5)))
+
+
 def test_the_model_check_imports_neither_scipy_stats_nor_scipy_signal():
     code = ("import sys, forensics.check.pipeline, forensics.cli.main\n"
             "print(sorted(m for m in ('scipy.stats', 'scipy.signal') if m in sys.modules))")
