@@ -605,7 +605,10 @@ class Device:
 
     def typical(self) -> "Device":
         """The typical pixel's device: no defects and every fixed-pattern array zeroed."""
-        state = {k: (np.zeros_like(v) if isinstance(v, np.ndarray) else v) for k, v in self.state.items()}
+        # np.zeros, not zeros_like: its pages are mapped zero and touched only when read, and the model check asks
+        # for a typical device at every prediction, whose state holds arrays per condition it never reads (filling
+        # them was 0.9 s of the EMVA 1288 standard series under the profiler)
+        state = {k: (np.zeros(v.shape, v.dtype) if isinstance(v, np.ndarray) else v) for k, v in self.state.items()}
         return Device(model=self.model, times=self.times, catalogue=DefectCatalogue.empty(), state=state)
 
 
