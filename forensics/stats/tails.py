@@ -2,9 +2,9 @@
 
 Each is the special function that ``scipy.stats`` itself calls for that method (``chi2.sf`` is ``chdtrc``,
 ``chi2.isf`` ``chdtri``, ``chi2.ppf`` ``2·gammaincinv(df/2, p)``, ``f.sf`` ``fdtrc``, ``t.sf`` ``stdtr`` at −x,
-``norm.sf`` ``ndtr`` at −x, ``norm.isf`` ``−ndtri``), so the values are the same bits.  Why not ``scipy.stats``: importing it (with
-``scipy.signal``, which imports it) costs 0.3–0.45 s, a tenth of a model check of a small series, which needs
-nothing else from it.
+``norm.sf`` ``ndtr`` at −x, ``norm.isf`` ``−ndtri``), so the values are the same bits.  Why not ``scipy.stats``:
+importing it (with ``scipy.signal``, which imports it) costs 0.3–0.45 s, a tenth of a model check of a small
+series, which needs nothing else from it.
 
 Examples
 --------

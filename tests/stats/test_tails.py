@@ -32,6 +32,18 @@ def test_the_median_order_bounds_are_the_binomial_quantiles():
         assert tails.median_order_bounds(n) == (int(stats.binom.ppf(0.025, n, 0.5)), int(stats.binom.isf(0.025, n, 0.5)))
 
 
+def test_the_wide_scene_convolution_is_scipy_signal_s_bit_for_bit():
+    from scipy import signal
+
+    from forensics.check.pixels import _fft_convolve_valid, loo_quadratic_kernel
+
+    rng = np.random.default_rng(1)
+    for shape, size in (((3, 78, 94), 31), ((1, 40, 33), 5)):
+        x, kernel = rng.normal(size=shape), loo_quadratic_kernel(size)
+        assert np.array_equal(_fft_convolve_valid(x, kernel),
+                              signal.fftconvolve(x, kernel[None], mode="valid", axes=(1, 2)))
+
+
 def test_the_model_check_imports_neither_scipy_stats_nor_scipy_signal():
     code = ("import sys, forensics.check.pipeline, forensics.cli.main\n"
             "print(sorted(m for m in ('scipy.stats', 'scipy.signal') if m in sys.modules))")
