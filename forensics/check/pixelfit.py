@@ -413,8 +413,17 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
             mu_new = refit_local(tdev, X_local, mu_new)
         return trial, float(np.sum(w * (y - mu_new) ** 2))
 
+    def kept() -> list[np.ndarray]:
+        """The patterns a trial left in place (to put back without evaluating it again)."""
+        return [p.values.copy() for _, p in pats]
+
+    def restore(values: list[np.ndarray]) -> None:
+        for (_, p), v in zip(pats, values):
+            p.values[...] = v
+
     fraction = 1.0
     excess = None  # χ² of the patterns' refit alone (the step's fraction 0) above chi_old, once measured
+    rises: list[float] = []  # χ² of the failed trials above chi_old (at the fractions 1, ½ of the step)
     for attempt in range(8):
         # the fall the linearised model predicts: χ²(f) = χ²(0) − 2f·g·s + f²·s·H·s
         predicted = 2.0 * fraction * float(g @ step) - fraction**2 * float(step @ H @ step)
@@ -426,13 +435,16 @@ def _global_step(predict, consistent, refit_local, device: Device, effects: list
         if chi_new <= chi_old:
             if abs((chi_old - chi_new) - predicted) <= LINEAR_ENOUGH * abs(predicted):
                 return trial, H, cross, J
-            return _line_minimum(evaluate, fraction, chi_old, trial, chi_new), H, cross, J
+            return _line_minimum(evaluate, fraction, chi_old, trial, chi_new, kept, restore), H, cross, J
+        rises.append(chi_new - chi_old)
         if attempt == 1:
             # two trials rose: is it the step, or the patterns' refit that every trial makes (a local Gauss–Newton
             # step that ignores how a defect's values reach its neighbours through their scene estimates)?  If
             # the refit alone raises χ² by more than a shorter step is predicted to gain, halving cannot succeed
             # (the hidden prnu dataset's base fit: 8 trials rose, 6 of them after this was clear)
             excess = evaluate(0.0)[1] - chi_old
+            if uphill_start(excess, rises[1], rises[0]):
+                break
         fraction /= 2
     if excess is not None and excess > 0:
         # the patterns' refit alone raises χ², so no trial that includes it can fall: step the parameters with
@@ -498,9 +510,33 @@ LINEAR_ENOUGH = 0.2
 MAX_STRETCH = 10.0
 
 
-def _line_minimum(evaluate, fraction: float, chi_old: float, trial: list[Effect], chi_new: float) -> list[Effect]:
+def uphill_start(rise_0: float, rise_half: float, rise_1: float) -> bool:
+    """Whether χ² rises from the start of a step along which it rose by ``rise_half`` and ``rise_1`` at half and
+    all of its length and by ``rise_0`` with the patterns' refit alone (each above the χ² before the step): the
+    slope at 0 of the parabola through the three, ``4·rise_half − rise_1 − 3·rise_0``, is not negative.
+
+    Why: there no shorter step lowers χ² by more than the refit alone (the parabola's values below it are at
+    fractions under ``−rise_0`` over that slope), yet the halving went on: at a fit's optimum the Gauss–Newton
+    step is the derivatives' rounding and the profiled refit's, its trials rise in proportion to their length, and
+    every tile of the EMVA 1288 simulator's 1 MP series spent a confirmation cycle's global step on six such trials
+    (a seventh of the tile's time), each rejected, before the parameters stayed where they were.
+
+    Examples
+    --------
+    >>> uphill_start(-6e-5, 0.0415, 0.1237)   # a tile's last step: rising in proportion to its length
+    True
+    >>> uphill_start(0.0, 0.75, 4.0)          # overshooting: the start still descends (χ² = −t + 5t²)
+    False
+    """
+    return 4.0 * rise_half - rise_1 - 3.0 * rise_0 >= 0.0
+
+
+def _line_minimum(evaluate, fraction: float, chi_old: float, trial: list[Effect], chi_new: float,
+                  kept=None, restore=None) -> list[Effect]:
     """The accepted step ``fraction``, or the minimum of the parabola through χ² at 0, half of it and itself
-    along the step when that is lower; the chosen trial's patterns are left in place.
+    along the step when that is lower; the chosen trial's patterns are left in place (``kept()`` snapshots the
+    patterns a trial leaves and ``restore`` puts a snapshot back, when given; else the chosen trial is evaluated
+    again — the same numbers, as :func:`evaluate` starts every trial from the same patterns).
 
     Why: the Gauss–Newton step is exact only where the residual's slope is the prediction's.  The residuals are
     taken against the censored, quantised readout's mean, whose slope is not the latent mean's where the noise
@@ -510,9 +546,11 @@ def _line_minimum(evaluate, fraction: float, chi_old: float, trial: list[Effect]
     (censored pixels) every step fell short.  The derivative of the censored mean itself vanishes where the
     latent mean starts below a bound (a black level at its initial 0), so the step keeps the latent slope's
     direction and takes its length from χ² along it (up to :data:`MAX_STRETCH` times the step)."""
+    accepted = kept() if kept is not None else None  # the patterns of the accepted trial, in place on entry
     half_trial, chi_half = evaluate(0.5 * fraction)
     last = 0.5
     candidates = [(chi_half, 0.5, half_trial), (chi_new, 1.0, trial)]
+    patterns = {1.0: accepted, 0.5: kept() if kept is not None else None}
     # χ²(a) = χ²(0) + B·a + C·a² through the three points (a in units of the accepted fraction); minimum −B/2C
     curvature = 2.0 * (chi_new - 2.0 * chi_half + chi_old)
     if curvature > 0:
@@ -525,5 +563,8 @@ def _line_minimum(evaluate, fraction: float, chi_old: float, trial: list[Effect]
         last = a
     chi, a, best = min(candidates, key=lambda item: item[0])
     if a != last:
-        best = evaluate(a * fraction)[0]  # leave that trial's patterns in place
+        if patterns.get(a) is not None:
+            restore(patterns[a])  # that trial's patterns, as it left them
+        else:
+            best = evaluate(a * fraction)[0]  # leave that trial's patterns in place
     return best

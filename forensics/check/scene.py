@@ -178,18 +178,21 @@ _ROWS_PER_BLOCK = 64
 
 def _padded_rows(img: np.ndarray, y0: int, y1: int, h: int, mode: str) -> np.ndarray:
     """Rows ``y0 − h … y1 + h − 1`` of ``img`` padded by ``h`` on every side as ``ndimage`` extends it ("reflect":
-    d c b a | a b c d, numpy's "symmetric"; "constant": zeros), in float64 — one block, not the whole frame."""
-    H = img.shape[0]
+    d c b a | a b c d, numpy's "symmetric"; "constant": zeros), in float64 — one block, not the whole frame.
+    (One gather by reflected row and column indices: ``np.pad`` cost as much as the sums it served on tiles.)"""
+    H, W = img.shape
     r = np.arange(y0 - h, y1 + h)
+    c = np.arange(-h, W + h)
     if mode == "reflect":
         r = np.where(r < 0, -r - 1, r)
         r = np.where(r >= H, 2 * H - 1 - r, r)
-        block = img[r].astype(np.float64)
-    else:
-        block = np.zeros((r.size, img.shape[1]))
-        inside = (r >= 0) & (r < H)
-        block[inside] = img[r[inside]]
-    return np.pad(block, ((0, 0), (h, h)), mode="symmetric" if mode == "reflect" else "constant")
+        c = np.where(c < 0, -c - 1, c)
+        c = np.where(c >= W, 2 * W - 1 - c, c)
+        return img[r[:, None], c[None, :]].astype(np.float64)
+    block = np.zeros((r.size, W + 2 * h))
+    inside = (r >= 0) & (r < H)
+    block[inside, h:W + h] = img[r[inside]]
+    return block
 
 
 def correlate_kernel(image: np.ndarray, mode: str = "reflect") -> np.ndarray:

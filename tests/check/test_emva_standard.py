@@ -21,7 +21,7 @@ pytest.importorskip("emva1288", reason="emva1288 (a test dependency) is not inst
 from forensics.check import check_auto  # noqa: E402
 from forensics.check.measurements import load_measurements, saturation_level  # noqa: E402
 from forensics.check.pipeline import prepare  # noqa: E402
-from forensics.check.pixelfit import _line_minimum  # noqa: E402
+from forensics.check.pixelfit import _line_minimum, uphill_start  # noqa: E402
 from forensics.fixtures.emva import StandardSeries, make_standard_series  # noqa: E402
 
 SERIES = StandardSeries(shape=(48, 64), steps=8, spatial=4)
@@ -70,6 +70,45 @@ def test_the_line_search_takes_the_step_length_from_chi2():
     best = _line_minimum(evaluate, 1.0, 1.0, [1.0], 0.36)
     assert best[0] == pytest.approx(1 / 1.6, rel=1e-9)
     assert calls[-1] == best[0]  # the chosen trial was the last evaluated: its patterns are in place
+
+
+def test_the_line_search_puts_back_the_chosen_trials_patterns_without_evaluating_it_again():
+    """χ² falls most at the accepted step itself (the parabola's minimum, 0.84 of it, is worse there, as on the
+    tiles of the EMVA 1288 simulator's 1 MP series): with snapshots the accepted trial's patterns are put back, with
+    one evaluation fewer than evaluating it again, and the same trial is chosen either way."""
+    chi = {0.0: 0.0, 0.5: -77.38, 1.0: -89.09}
+    state = {"patterns": None}
+
+    def run(with_snapshots):
+        calls = []
+
+        def evaluate(fraction):
+            calls.append(fraction)
+            state["patterns"] = f"patterns of {fraction:.4f}"
+            value = chi.get(fraction, -87.87)  # the parabola's minimum is not the true one
+            return [fraction], value
+
+        state["patterns"] = "patterns of 1.0000"  # the accepted trial's, in place on entry
+        kept = (lambda: state["patterns"]) if with_snapshots else None
+        restore = (lambda v: state.update(patterns=v)) if with_snapshots else None
+        best = _line_minimum(evaluate, 1.0, 0.0, [1.0], -89.09, kept, restore)
+        return best, calls, state["patterns"]
+
+    again, calls_again, patterns_again = run(False)
+    kept, calls_kept, patterns_kept = run(True)
+    assert again == kept == [1.0]
+    assert patterns_again == patterns_kept == "patterns of 1.0000"
+    assert calls_again[-1] == 1.0 and len(calls_kept) == len(calls_again) - 1
+
+
+def test_a_step_whose_trials_rise_in_proportion_to_its_length_starts_uphill():
+    """χ² along a step that rises linearly (a fit at its optimum: the step is rounding) starts uphill whatever the
+    refit alone gives; one that overshoots a minimum near its start does not, so halving it can still succeed."""
+    for slope in (0.01, 0.12, 5.0):
+        for refit in (-1e-4, 0.0, 1e-4):
+            assert uphill_start(refit, refit + 0.5 * slope, refit + slope)
+    # χ²(t) − χ²(0) = −t + 5t²: rises at ½ and 1 (0.75, 4), yet falls for t < 0.2
+    assert not uphill_start(0.0, 0.75, 4.0)
 
 
 #: Other bit depths (emva1288 picks the black offset: 0.65 DN at 8 bits, where the dark frames sit on the bound;
