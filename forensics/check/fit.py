@@ -22,7 +22,7 @@ from forensics.check.identifiability import bounded_step, estimates
 from forensics.check.params import bespoke_fit, is_pixel, on_device, on_model, unit, with_clipped_param, with_param
 from forensics.check.pixelfit import fit_pixels, used_blocks
 from forensics.check.pixels import PixelData, VarianceBins, log_variance, pattern_size, with_latent_spread
-from forensics.check.prediction import PHASE_SIGMA, SCENE_SHIFT, predicted_variance
+from forensics.check.prediction import PHASE_SIGMA, SCENE_SHIFT, bin_offsets, predicted_variance
 from forensics.check.joint_solve import coupled_shrink
 from forensics.check.local_solve import PixelProjector, shrink_local
 from forensics.check.measurements import Group
@@ -624,8 +624,10 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
     w = bins.df / 2.0
     jac = None
 
+    offsets = bin_offsets(bins, rgroups, device)  # the device is fixed: only the noise laws change
+
     def log_pred(effs: list[Effect]) -> np.ndarray:
-        return np.log(predicted_variance(bins, rgroups, effs, device))
+        return np.log(predicted_variance(bins, rgroups, effs, device, offsets))
 
     def jacobian(effs: list[Effect], pred: np.ndarray) -> np.ndarray:
         cols = []
@@ -678,7 +680,7 @@ def fit_variance(bins: VarianceBins, rgroups: Sequence[Group], noise: list[Effec
         noise, _, converged = min(fits, key=lambda f: f[1])
         jac = jacobian(noise, log_pred(noise))
         params = estimates(noise, free, (jac * w) @ jac.T, converged)
-    predicted = predicted_variance(bins, rgroups, noise, device)
+    predicted = predicted_variance(bins, rgroups, noise, device, offsets)
     return NoiseFit(noise, predicted, jac, params, float(np.sum(w * (y - np.log(predicted)) ** 2)))
 
 

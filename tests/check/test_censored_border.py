@@ -103,3 +103,13 @@ def test_eight_bit_dsnu_held_out_values_predict_the_offsets(tmp_path):
     scored = np.any(fitted.pixels.weight > 0, axis=0) & normal
     error = np.std((values - truth)[scored])
     assert error < 0.85 * np.std(truth[scored])
+
+    # the variance channel's forward model takes the bins' electronic offsets (here the DSNU's, which differ from
+    # bin to bin) averaged once per device (``bin_offsets``, as the noise fit does): the numbers averaged anew
+    from forensics.check.prediction import bin_offsets, predicted_variance
+
+    bins, noise = fitted.pixels.bins, fitted.noise_effects()
+    offsets = bin_offsets(bins, ev.rgroups, fitted.device)
+    assert np.ptp(np.concatenate(list(offsets.values()))) > 0.1
+    assert np.array_equal(predicted_variance(bins, ev.rgroups, noise, fitted.device, offsets),
+                          predicted_variance(bins, ev.rgroups, noise, fitted.device))
