@@ -517,7 +517,7 @@ def uphill_start(rise_0: float, rise_half: float, rise_1: float) -> bool:
 
     Why: there no shorter step lowers χ² by more than the refit alone (the parabola's values below it are at
     fractions under ``−rise_0`` over that slope), yet the halving went on: at a fit's optimum the Gauss–Newton
-    step is the derivatives' rounding and the profiled refit's, its trials rise in proportion to their length, and
+    step is the error of its linearisation, its trials rise in proportion to their length, and
     every tile of the EMVA 1288 simulator's 1 MP series spent a confirmation cycle's global step on six such trials
     (a seventh of the tile's time), each rejected, before the parameters stayed where they were.
 
