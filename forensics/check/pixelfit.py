@@ -1,7 +1,7 @@
 """The pixel channel's fit: fixed patterns and global parameters on the first half of the repeats."""
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -532,7 +532,8 @@ def uphill_start(rise_0: float, rise_half: float, rise_1: float) -> bool:
 
 
 def _line_minimum(evaluate, fraction: float, chi_old: float, trial: list[Effect], chi_new: float,
-                  kept=None, restore=None) -> list[Effect]:
+                  kept: Callable[[], list[np.ndarray]] | None = None,
+                  restore: Callable[[list[np.ndarray]], None] | None = None) -> list[Effect]:
     """The accepted step ``fraction``, or the minimum of the parabola through χ² at 0, half of it and itself
     along the step when that is lower; the chosen trial's patterns are left in place (``kept()`` snapshots the
     patterns a trial leaves and ``restore`` puts a snapshot back, when given; else the chosen trial is evaluated

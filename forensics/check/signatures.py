@@ -17,7 +17,7 @@ from forensics.check.evidence import EffectQuestions, Evidence
 from forensics.check.fit import FittedModel
 from forensics.check.params import on_device
 from forensics.check.pixelfit import used_blocks
-from forensics.check.prediction import predicted_variance
+from forensics.check.prediction import bin_offsets, predicted_variance
 from forensics.check.streams import ARRIVAL_SIGNATURES
 from forensics.sensor.model import Device, Effect, Stage
 
@@ -108,8 +108,11 @@ class SignatureContext(EffectQuestions):
         probe = effect.nulled()
         noise = fitted.noise_effects()
 
+        bins = fitted.pixels.bins
+        offsets = bin_offsets(bins, ev.rgroups, fitted.device)  # one device for every trial law below
+
         def log_var(e: Effect) -> np.ndarray:
-            return np.log(predicted_variance(fitted.pixels.bins, ev.rgroups, [*noise, e], fitted.device))
+            return np.log(predicted_variance(bins, ev.rgroups, [*noise, e], fitted.device, offsets))
 
         base = log_var(probe)
         sigs = []
