@@ -65,6 +65,37 @@ def context(device: Device, g: Group) -> FrameContext:
 TABLE_CACHE_BYTES = 256 * 2**20
 
 
+def rising_branch(chain: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The part of a tabulated chain (output over an increasing ``grid`` of light) that rises through zero light:
+    the branch a sensor's response follows from dark up.
+
+    A response that turns over within the table — a compressive non-linearity y = i − β·i²/full scale with
+    β > 0.25 peaks at i = full scale/(2β), inside the grid's 2 × full scale — has two lights for each output
+    below its peak.  Sorting the table by output (what this did before) interleaved the two branches, so the
+    inverse jumped between them, and a fit whose brightest pixels sat near the peak read its cusp as information:
+    tiles of the STL-1001E's whole frame reported β ± 10⁻⁷ against the others' ± 5·10⁻³.  Outputs above the
+    branch's end invert to its end (the clamp of :meth:`ChainInverse.invert`), as a sensor's brightest light does.
+
+    Examples
+    --------
+    >>> g = np.linspace(-1.0, 4.0, 11)
+    >>> c, x = rising_branch(g - 0.25 * g ** 2, g)     # peaks at light 2
+    >>> float(x[0]), float(x[-1]), bool(np.all(np.diff(c) > 0))
+    (-1.0, 2.0, True)
+    """
+    rises = np.diff(chain) > 0
+    zero = int(np.clip(np.searchsorted(grid, 0.0), 0, len(grid) - 1))
+    if not (zero < len(rises) and rises[zero]) and not (zero > 0 and rises[zero - 1]):
+        # no rise at zero light (not a response): the table sorted by output, as before
+        order = np.argsort(chain, kind="stable")
+        return chain[order], grid[order]
+    at = min(zero, len(rises) - 1) if zero < len(rises) and rises[zero] else zero - 1
+    falls = np.flatnonzero(~rises)
+    first = int(falls[falls < at].max()) + 1 if np.any(falls < at) else 0
+    last = int(falls[falls > at].min()) if np.any(falls > at) else len(chain) - 1
+    return chain[first:last + 1], grid[first:last + 1]
+
+
 class ChainInverse:
     """The inverse of the typical pixel's chain (output → light), tabulated on a grid of light.
 
@@ -85,8 +116,7 @@ class ChainInverse:
             # conditions (the tables' grid has the frame's size)
             chain = grid = None
         elif np.any(np.diff(chain) <= 0):
-            order = np.argsort(chain, kind="stable")
-            chain, grid = chain[order], grid[order]
+            chain, grid = rising_branch(chain, grid)
         self.chain, self.grid = chain, grid
 
     @property
