@@ -19,6 +19,12 @@ pixels; each tile is read (its region of every frame, with a halo of its neighbo
   parameter that differs).  A
   dark rate or a gain that changes across the sensor — amplifier glow in a corner, a gain gradient — fails it:
   a spatial effect the model lacks, which one small region cannot show.
+* **Tiles whose covariance is not a sampling variance** are left out of the combination of the parameter
+  concerned (:func:`untrusted_estimates`): equal tiles under one design carry about the same information per
+  pixel, so a tile that claims a hundred times the tiles' median (its standard error a tenth) has settled on a
+  cusp or a degenerate optimum, not measured better; and a tile whose held-out error is ten times the tiles'
+  median is not described by the model, so its curvature says nothing of its estimates' spread.  Without it,
+  one such tile of the STL-1001E's whole frame (β ± 9·10⁻⁸ against the others' ± 5·10⁻³) set the combined β.
 * **Parameters that are not combined** — held or not separable from another, on a bound, the largest of several
   values (a defect amplitude, whose tile estimates are skewed) — are listed with the reason and the tiles'
   values (:func:`uncombined_params`), so that the tiled check states every parameter one check would.
@@ -70,6 +76,18 @@ MIN_TILE = 16
 WHOLE_FRAME_BYTES = 330
 #: A whole-frame check estimated above this (bytes) is pointed to ``--tiles``.
 TILES_ADVICE_BYTES = 2 * 2**30
+
+#: A tile's estimate is left out of the combination when its standard error per pixel (× √ of its core's pixels)
+#: is below the tiles' median by more than this factor, i.e. it claims 100 × the typical information.  Under the
+#: model, tiles of one frame and design differ in information per pixel only by their content (vignetting, the
+#: share of defects): on the STL-1001E's whole frame 0.74–1.14 of the median for the settled parameters, the
+#: degenerate tiles 10⁻⁵; on the 12 MP simulated series within a few percent.
+PRECISION_LIMIT = 10.0
+#: A tile whose misfit φ (:func:`tile_dispersion`, the square of its held-out error) exceeds the tiles' median
+#: by more than this factor (ten times the typical held-out error) has every estimate left out: where the model
+#: does not describe a tile, its curvature is not its estimates' variance (the STL-1001E tiles' φ: 3.3–37, median 4.9;
+#: a tile that settled on a degenerate fit: 17,956).
+MISFIT_LIMIT = 100.0
 
 
 def whole_frame_advice(n_pixels: int, n_frames: int, limit: float = TILES_ADVICE_BYTES) -> str | None:
@@ -255,6 +273,19 @@ class CombinedCandidate:
         return dict(self.__dict__)
 
 
+@dataclass(frozen=True)
+class UntrustedEstimate:
+    """A tile's estimate left out of the combination (:func:`untrusted_estimates`), and why."""
+
+    tile: int  #: its index in the tiles given
+    core: tuple[int, int, int, int]  #: the tile's core (top, left, rows, columns)
+    label: str  #: ``effect.name``
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"tile": self.tile, "core": list(self.core), "label": self.label, "reason": self.reason}
+
+
 @dataclass
 class TiledCheck:
     """The whole frame's check from its tiles (:func:`check_tiles`).  ``to_dict()`` gives the JSON."""
@@ -274,6 +305,8 @@ class TiledCheck:
     patterns: list[TiledPattern] = field(default_factory=list)
     #: the parameters the tiles report that are not combined (held, on a bound, the largest of several values…)
     uncombined: list[UncombinedParam] = field(default_factory=list)
+    #: tiles' estimates left out of the combination: their covariance is not a sampling variance
+    untrusted: list[UntrustedEstimate] = field(default_factory=list)
 
     @property
     def flagged(self) -> list[str]:
@@ -288,6 +321,7 @@ class TiledCheck:
         return {"shape": list(self.shape), "tile_size": self.size, "effects": self.effects,
                 "params": [p.to_dict() for p in self.params],
                 "uncombined": [p.to_dict() for p in self.uncombined],
+                "untrusted": [u.to_dict() for u in self.untrusted],
                 "patterns": [p.to_dict() for p in self.patterns],
                 "heterogeneity": {"q": self.joint_q, "df": self.joint_df, "p_same": self.joint_p_same},
                 "error": self.error, "gof": self.gof, "candidates": [c.to_dict() for c in self.candidates],
@@ -316,12 +350,81 @@ def _not_pooled(p: ParamEstimate) -> str | None:
     return None
 
 
-def _tile_covariance(params: Sequence[ParamEstimate]) -> tuple[list[str], np.ndarray, np.ndarray]:
+def _area(t: TileResult) -> int:
+    return int(t.tile.core[2] * t.tile.core[3])
+
+
+def untrusted_estimates(tiles: Sequence[TileResult], precision_limit: float = PRECISION_LIMIT,
+                        misfit_limit: float = MISFIT_LIMIT) -> list[UntrustedEstimate]:
+    """The tiles' estimates whose covariance the combination cannot take as their sampling variance.
+
+    * Every pooled estimate of a tile whose misfit φ (:func:`tile_dispersion`) is above ``misfit_limit`` times the
+      tiles' median: the model does not describe that tile.
+    * A parameter's estimate whose standard error per pixel (× √ of the core's pixels) is below the median over
+      the tiles that pool it by more than ``precision_limit``: equal tiles under one design carry about the same
+      information per pixel, so a hundredfold claim is a cusp or a degenerate optimum of that tile's fit.
+
+    Both medians are taken over at least three tiles (fewer say nothing of what is typical).
+
+    Examples
+    --------
+    Five tiles measure a parameter to ± 1; a sixth claims ± 10⁻⁷ (a fit settled on a cusp):
+
+    >>> from forensics.check.result import ParamEstimate
+    >>> t = [TileResult(Tile((8 * i, 0, 8, 8), (8 * i, 0, 8, 8)), [], [ParamEstimate("x", "a", 1.0, se)],
+    ...                 {}, {}, None, {}, [], [], []) for i, se in enumerate([1.0, 1.1, 0.9, 1.0, 1.2, 1e-7])]
+    >>> [(u.tile, u.core[0], u.label) for u in untrusted_estimates(t)]
+    [(5, 40, 'x.a')]
+    """
+    out: list[UntrustedEstimate] = []
+    misfit = _misfits(tiles, misfit_limit)
+    for i, why in misfit.items():
+        out += [UntrustedEstimate(i, tiles[i].tile.core, p.label, why) for p in tiles[i].params
+                if _not_pooled(p) is None]
+    per_label: dict[str, list[tuple[int, float]]] = {}
+    for i, t in enumerate(tiles):
+        if t.excluded or i in misfit:
+            continue
+        for p in t.params:
+            if _not_pooled(p) is None:
+                per_label.setdefault(p.label, []).append((i, float(p.se) * math.sqrt(_area(t))))
+    for label, pairs in per_label.items():
+        out += [UntrustedEstimate(i, tiles[i].tile.core, label, why)
+                for i, why in _overprecise(pairs, precision_limit).items()]
+    return out
+
+
+def _misfits(tiles: Sequence[TileResult], limit: float) -> dict[int, str]:
+    """The tiles (index → why) whose misfit φ is above ``limit`` times the median over the tiles with a held-out
+    error (at least three)."""
+    held = [(i, tile_dispersion(t)) for i, t in enumerate(tiles)
+            if not t.excluded and any(v is not None for v in t.classes.values())]
+    if len(held) < 3:
+        return {}
+    typical = float(np.median([phi for _, phi in held]))
+    return {i: (f"held-out error {math.sqrt(phi):.3g}, more than {math.sqrt(limit):.0f} × the tiles' median "
+                f"{math.sqrt(typical):.3g}: the model does not describe the tile")
+            for i, phi in held if phi > limit * typical}
+
+
+def _overprecise(pairs: Sequence[tuple[int, float]], limit: float) -> dict[int, str]:
+    """The tiles (index → why) whose standard error per pixel, of ``pairs`` (index, SE × √pixels), is below the
+    median over at least three tiles by more than ``limit``."""
+    if len(pairs) < 3:
+        return {}
+    typical = float(np.median([se for _, se in pairs]))
+    return {i: (f"standard error {se / typical:.2g} × the tiles' median per pixel: the fit settled on a cusp or "
+                "a degenerate optimum") for i, se in pairs if se < typical / limit}
+
+
+def _tile_covariance(params: Sequence[ParamEstimate], leave_out: Sequence[str] = ()
+                     ) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(labels, values, covariance) of a tile's usable estimates: identifiable, settled, with a standard
     error, off their bounds (at a bound the likelihood is not quadratic about the value), quadratic (not the
     largest of several values, whose tile estimates are skewed: their heterogeneity Q would read the skew as a
-    parameter that differs across the sensor)."""
-    use = [p for p in params if _not_pooled(p) is None]
+    parameter that differs across the sensor); less ``leave_out`` (:func:`untrusted_estimates`: the others'
+    covariance is then their marginal one, the submatrix)."""
+    use = [p for p in params if _not_pooled(p) is None and p.label not in leave_out]
     labels = [p.label for p in use]
     cov = np.diag([float(p.se) ** 2 for p in use])
     for i, p in enumerate(use):
@@ -373,7 +476,8 @@ def _precision(cov: np.ndarray) -> np.ndarray:
 
 def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float | None, int, float | None]:
     """The global parameters combined over ``tiles`` by their information (module docstring), each with its
-    heterogeneity test, and the joint heterogeneity test (Q, df, p).
+    heterogeneity test, and the joint heterogeneity test (Q, df, p); the estimates of
+    :func:`untrusted_estimates` left out.
 
     Examples
     --------
@@ -389,10 +493,13 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
     order: list[str] = []
     meta: dict[str, ParamEstimate] = {}
     parts = []
-    for t in tiles:
+    untrusted: dict[int, set[str]] = {}
+    for u in untrusted_estimates(tiles):
+        untrusted.setdefault(u.tile, set()).add(u.label)
+    for i, t in enumerate(tiles):
         if t.excluded:
             continue
-        labels, values, cov = _tile_covariance(t.params)
+        labels, values, cov = _tile_covariance(t.params, untrusted.get(i, set()))
         if not labels:
             continue
         parts.append((labels, values, cov, _precision(cov), tile_dispersion(t)))
@@ -484,7 +591,8 @@ def scalar_heterogeneity(values: Sequence[tuple[float, float]], centre: float
 
 def combine_pattern_sizes(tiles: Sequence[TileResult]) -> list[TiledPattern]:
     """Every random-effect pattern's size combined over the tiles that measured it (inverse-variance weighted
-    mean; Cochran's Q and the DerSimonian–Laird spread as for a parameter).
+    mean; Cochran's Q and the DerSimonian–Laird spread as for a parameter; tiles left out as a parameter's are by
+    :func:`untrusted_estimates`).
 
     Examples
     --------
@@ -495,15 +603,19 @@ def combine_pattern_sizes(tiles: Sequence[TileResult]) -> list[TiledPattern]:
     >>> round(p.size, 4), round(p.size_se, 5), round(p.q, 1)
     (0.011, 0.00071, 2.0)
     """
-    found: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
-    for t in tiles:
-        if t.excluded:
+    found: dict[tuple[str, str], list[tuple[int, float, float, float]]] = {}
+    misfit = _misfits(tiles, MISFIT_LIMIT)  # as for a parameter (:func:`untrusted_estimates`)
+    for i, t in enumerate(tiles):
+        if t.excluded or i in misfit:
             continue
         phi = tile_dispersion(t)
         for p in t.patterns:
-            found.setdefault((p.effect, p.name), []).append((float(p.size), float(p.size_se) ** 2, phi))
+            found.setdefault((p.effect, p.name), []).append((i, float(p.size), float(p.size_se) ** 2, phi))
     out = []
-    for (effect, name), values in found.items():
+    for (effect, name), found_values in found.items():
+        overprecise = _overprecise([(i, math.sqrt(b * _area(tiles[i]))) for i, _, b, _ in found_values],
+                                   PRECISION_LIMIT)
+        values = [(a, b, phi) for i, a, b, phi in found_values if i not in overprecise]
         w = 1.0 / np.array([b for _, b, _ in values])
         mean = float(np.sum(w * np.array([a for a, _, _ in values])) / np.sum(w))
         # the size and its SE as the tiles measured them; the agreement test with each tile's misfit, as a parameter's
@@ -597,6 +709,16 @@ def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> T
     if empty:
         warnings.append(f"{len(empty)} tile(s) gave no held-out error (no usable pixel means there, e.g. a dead or "
                         "saturated part of the sensor): " + "; ".join(_where(t) for t in empty[:5]))
+    untrusted = untrusted_estimates(tiles)
+    if untrusted:
+        by_tile: dict[int, list[UntrustedEstimate]] = {}
+        for u in untrusted:
+            by_tile.setdefault(u.tile, []).append(u)
+        named = [f"{_where(tiles[i])}: {', '.join(u.label for u in us)} ({us[0].reason})"
+                 for i, us in list(by_tile.items())[:5]]
+        warnings.append(f"{len(untrusted)} estimate(s) of {len(by_tile)} tile(s) left out of the combined parameters, "
+                        f"their standard errors not a sampling spread — {'; '.join(named)}"
+                        f"{' …' if len(by_tile) > 5 else ''}")
     usable = [t for t in tiles if not t.excluded and t not in empty]
     if usable:  # what every tile says about the data (the design, the fields missing): the best-measured tile's
         best = max(usable, key=lambda t: sum(t.held_out.values()))
@@ -604,7 +726,8 @@ def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> T
     effects = next((t.effects for t in tiles if t.effects), [])
     return TiledCheck((int(shape[0]), int(shape[1])), int(size), list(effects), tiles, params, q, df, p,
                       combine_errors(tiles), combine_gof(tiles), combine_candidates(tiles), warnings,
-                      combine_pattern_sizes(tiles), uncombined_params(tiles, [x.estimate.label for x in params]))
+                      combine_pattern_sizes(tiles), uncombined_params(tiles, [x.estimate.label for x in params]),
+                      untrusted)
 
 
 def _where(t: TileResult) -> str:

@@ -4,6 +4,7 @@ everywhere, and with amplifier glow raising it near one corner."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -106,6 +107,8 @@ def test_tiles_agree_with_the_whole_frame_check(flat_rate):
         assert 0.8 <= p.estimate.se / w.se <= 1.25, p.estimate.label
     assert tiled.error["pixel"] == pytest.approx(whole.error["pixel"], rel=0.2)
     assert not tiled.flagged and not whole.flagged
+    # where the model holds, no tile's covariance is distrusted (the guard of untrusted_estimates stays silent)
+    assert tiled.untrusted == []
 
 
 def test_every_parameter_is_reported_combined_or_with_the_reason_it_is_not(flat_rate):
@@ -200,6 +203,37 @@ def test_a_dead_corner_is_named_and_left_out(flat_rate, tmp_path):
     for p in dead.params:
         assert p.tiles == 5
         assert abs(p.estimate.value - whole[p.estimate.label].value) <= 2 * p.estimate.se, p.estimate.label
+
+
+def _located(i: int, label_values: dict[str, tuple[float, float]], error: float = 1.5) -> TileResult:
+    t = _tile(label_values)
+    return replace(t, tile=Tile((8 * i, 0, 8, 8), (8 * i, 0, 8, 8)), classes={"normal": error},
+                   held_out={"normal": 50})
+
+
+def test_a_tile_claiming_a_hundredfold_information_or_misfitting_tenfold_is_left_out_of_the_combination():
+    """The STL-1001E's whole frame: a tile settled on a cusp reported β ± 9·10⁻⁸ against the others' ± 5·10⁻³ and
+    set the combined β.  Such an estimate, and every estimate of a tile whose held-out error is ten times the
+    tiles' median, are left out (named in the warnings and the JSON); the tile's other estimates still count."""
+    from forensics.check.tiles import combine
+
+    rng = np.random.default_rng(3)
+    tiles = [_located(i, {"x.a": (10.0 + rng.normal(), 1.0), "x.b": (2.0 + 0.1 * rng.normal(), 0.1)})
+             for i in range(7)]
+    honest, _, _, _ = combine_params(tiles)
+    cusp = _located(7, {"x.a": (25.0, 1e-7), "x.b": (2.05, 0.1)})
+    misfit = _located(8, {"x.a": (-40.0, 0.5), "x.b": (9.0, 0.05)}, error=30.0)
+    whole = combine((72, 8), 8, [*tiles, cusp, misfit])
+    by = {p.estimate.label: p for p in whole.params}
+    base = {p.estimate.label: p for p in honest}
+    assert by["x.a"].tiles == 7 and by["x.a"].estimate.value == pytest.approx(base["x.a"].estimate.value)
+    # the cusp tile's b (an ordinary estimate) still enters, the misfitting tile's does not
+    assert by["x.b"].tiles == 8
+    assert abs(by["x.b"].estimate.value - base["x.b"].estimate.value) <= 0.05
+    assert sorted((u.tile, u.label) for u in whole.untrusted) == [(7, "x.a"), (8, "x.a"), (8, "x.b")]
+    assert any("rows 56–63" in w and "x.a" in w for w in whole.warnings)
+    listed = json.loads(json.dumps(whole.to_dict()))["untrusted"]
+    assert {(u["core"][0], u["label"]) for u in listed} == {(56, "x.a"), (64, "x.a"), (64, "x.b")}
 
 
 def test_a_tile_that_misfits_weighs_less_in_the_heterogeneity_test_not_in_the_estimate():
