@@ -87,7 +87,7 @@ class FittedModel:
         return [e for e in self.effects if e.stage == Stage.NOISE]
 
 
-def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 24,
+def fit_model(ev: Evidence, effects: Sequence[Effect], max_cycles: int = 48,
               start: Mapping[str, float] | None = None, dither: float | None = None) -> FittedModel:
     """Fit ``effects`` to the evidence (the objects given are left unchanged).
 

@@ -531,8 +531,11 @@ class Nonlinearity(Effect):
     description = "global response curve: y = i − β·i²/full_scale (compression near saturation)"
     stage = Stage.RESPONSE
 
+    # β ≤ ½: the curve rises over the whole light range [0, full scale] (its peak, at i = full scale/(2β), beyond
+    # it) — a response that falls as the light grows is not a response curve; with β up to 1 the fits of the
+    # STL-1001E's tiles settled where the peak met their flat fields' level (β ≈ 0.85, at the inverse's clamp)
     beta: float = param(0.05, "", "fraction of the signal lost at full scale", null=0.0, free=True,
-                        bounds=(-1.0, 1.0))
+                        bounds=(-1.0, 0.5))
 
     def apply(self, signal: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
         signal -= np.float32(self.beta / ctx.full_scale) * signal * signal
