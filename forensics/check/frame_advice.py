@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from forensics.check.classes import QUANT_VAR
+from forensics.check.classes import QUANT_VAR, dark_groups
 from forensics.check.diagnosis import FLAG_DBIC
 from forensics.check.evidence import Evidence
 from forensics.check.measurements import Measurements
@@ -111,7 +111,37 @@ def light_levels(ev: Evidence, px: PixelData) -> int:
     return int(1 + np.sum(np.diff(meds) > 10 * noise))
 
 
+def unscored_fields(ev: Evidence, fields: list[str]) -> dict[str, list[Any]]:
+    """The ``fields`` that vary over the dark conditions only through their single frames (each with the dark
+    conditions' values): the repeated (scored) dark conditions hold fewer than two values of it, the dark
+    conditions together two or more.
+
+    Why it matters: a single frame is fitted but never scored (it has no second half to predict,
+    :mod:`~forensics.check.singles`), so an effect that shows only across the single darks — a dark series whose one
+    repeated condition is its biases — cannot be tested however many exposures the series has.  Scoring the single
+    frames' own residuals was tried: a frame's level jitters from readout to readout, and once that is taken out
+    a synthetic series without read-out charge still read its thermistor's quantisation (a hot pixel's 18,000 DN
+    moved by 0.35 % per 0.025 °C) as read-out charge and a response curve (benchmarks/RESULTS_check.md,
+    twenty-fourth session)."""
+    is_dark = dark_groups(ev.rgroups)
+    n_rep = len(ev.meas.repeated)
+    out = {}
+    for f in fields:
+        scored = {getattr(g, f) for g, d in zip(ev.rgroups[:n_rep], is_dark[:n_rep]) if d} - {None}
+        every = {getattr(g, f) for g, d in zip(ev.rgroups, is_dark) if d} - {None}
+        if len(scored) < 2 <= len(every):
+            out[f] = sorted(every)
+    return out
+
+
 def _frames_to_add(ev: Evidence, px: PixelData, a: str, b: str | None) -> str:
+    if b is None and a in EFFECTS and ev.singles is not None and ev.singles.law is not None:
+        fields = unscored_fields(ev, [f for f in ("exposure_s", "temperature_c") if f in EFFECTS[a].fields])
+        if fields:
+            values = " and ".join(f"{f} ({_fmt_values(v)})" for f, v in fields.items())
+            return (f"the dark frames vary {values} only in single frames, which are "
+                    "fitted but not scored: take two or more frames of one dark exposure (a repeated dark "
+                    "condition, e.g. ten of 60 s) at each temperature")
     fa = set(EFFECTS[a].fields) if a in EFFECTS else set()
     fb = set(EFFECTS[b].fields) if b in EFFECTS else set()
     fields = sorted((fa ^ fb) if b else fa) or sorted(fa | fb)

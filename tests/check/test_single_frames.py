@@ -8,6 +8,8 @@ must cover the truth; the 2017 STL-1001E series, which departs from it, is in ``
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -136,3 +138,18 @@ def test_carried_rate_interval_matches_sampling():
         sampled = np.log(draws[:, 0] * 2.0 ** ((temperature + 7.0) / draws[:, 1]))
         assert got["value"] == pytest.approx(0.25 * 2.0 ** ((temperature + 7.0) / 5.5))
         assert sd_delta == pytest.approx(float(sampled.std()), rel=0.01)
+
+
+def test_a_series_whose_only_repeats_are_its_biases_says_which_frames_would_test_dark_current(tmp_path, series):
+    """One frame per dark exposure and the biases repeated: dark current shows only in the single frames, which
+    are fitted but not scored, so it cannot be tested — the advice names those frames and asks for a repeated dark
+    exposure (it used to ask for "frames at another exposure_s" of a series that has seven).  Where a dark
+    exposure is repeated (the module's series), the advice does not appear."""
+    make_dark_series(tmp_path, 2, replace(DESIGN, n_repeat_dark=0))
+    result = check(tmp_path, baseline=False)
+    advice = [w for w in result.warnings if w.startswith("dark_current cannot be detected")]
+    assert len(advice) == 1 and "only in single frames" in advice[0] and "exposure_s (0, 10, 20" in advice[0]
+    folder, _, _ = series
+    repeated = check(folder, baseline=False)
+    assert "dark_current" in repeated.flagged
+    assert not any("only in single frames" in w for w in repeated.warnings)
