@@ -184,6 +184,36 @@ def test_a_paired_fall_counts_where_the_unpaired_tolerance_cannot_see_it():
     assert sel_mod.improvement(before, after) is None
 
 
+def test_one_class_falling_does_not_make_up_for_all_classes_rising():
+    """A few hot pixels' error² falls clearly (paired z ≈ 10) while the many normal pixels' rises more (a
+    nonlinearity on a dark series: normal error 2.5 → 4.4): together the error² rose beyond its noise, so nothing
+    counts as an improvement.  The same hot pixels' fall with the normal pixels unchanged still counts."""
+    from forensics.check.classes import CLASSES
+    from forensics.check.result import HeldOut
+
+    rng = np.random.default_rng(5)
+    n_normal, n_hot = 10_000, 200
+    z = rng.standard_normal(n_normal + n_hot)
+    classes = np.r_[np.zeros(n_normal), np.full(n_hot, CLASSES.index("partial"))].astype(np.int8)
+    floor = np.ones(n_normal + n_hot, np.float32)
+    misfit = np.r_[np.zeros(n_normal), np.full(n_hot, 3.0)]  # the hot pixels' misfit before
+    before = _result([], 3.0, [])
+    before.error["classes"] = {"normal": 1.0, "partial": 3.2}
+    before.heldout = HeldOut(((z + misfit) ** 2).astype(np.float32), floor, classes)
+    worse_normal = np.r_[np.full(n_normal, 1.5), np.zeros(n_hot)]  # the normal pixels' new misfit after
+    after = _result([], 1.9, [])
+    after.error["classes"] = {"normal": 1.8, "partial": 1.0}
+    after.data = {"held_out_means": {"normal": n_normal, "partial": n_hot}}
+    after.heldout = HeldOut(((z + worse_normal) ** 2).astype(np.float32), floor, classes)
+    fall, se = sel_mod.paired_fall(before, after, "partial")
+    assert fall > 3 * se  # the hot pixels alone: a clear fall
+    total, total_se = sel_mod.paired_fall(before, after, None)
+    assert -total > 3 * total_se
+    assert sel_mod.improvement(before, after) is None
+    after.heldout = HeldOut((z**2).astype(np.float32), floor, classes)  # the normal pixels as they were
+    assert sel_mod.improvement(before, after).startswith("error.classes.partial")
+
+
 # ------------------------------------------------------------------------------------ several hidden effects
 def test_the_generator_hides_several_effects():
     assert [e.key for e in hidden_effects(PAIR)] == PAIR and hidden_effects("none") == []
