@@ -84,12 +84,11 @@ def rising_branch(chain: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.n
     (-1.0, 2.0, True)
     """
     rises = np.diff(chain) > 0
-    zero = int(np.clip(np.searchsorted(grid, 0.0), 0, len(grid) - 1))
-    if not (zero < len(rises) and rises[zero]) and not (zero > 0 and rises[zero - 1]):
-        # no rise at zero light (not a response): the table sorted by output, as before
+    zero = int(np.searchsorted(grid, 0.0))
+    at = next((j for j in (zero, zero - 1) if 0 <= j < len(rises) and rises[j]), None)  # a rising step at 0
+    if at is None:  # no rise at zero light (not a response): the table sorted by output, as before
         order = np.argsort(chain, kind="stable")
         return chain[order], grid[order]
-    at = min(zero, len(rises) - 1) if zero < len(rises) and rises[zero] else zero - 1
     falls = np.flatnonzero(~rises)
     first = int(falls[falls < at].max()) + 1 if np.any(falls < at) else 0
     last = int(falls[falls > at].min()) if np.any(falls > at) else len(chain) - 1

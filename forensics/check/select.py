@@ -166,11 +166,8 @@ def paired_fall(before: CheckResult, after: CheckResult, cls: str | None) -> tup
     if before.heldout is None or after.heldout is None or (cls is not None and cls not in CLASSES):
         return None
     a, b = before.heldout, after.heldout
-    if cls is None:
-        both = (a.classes == b.classes) & np.isfinite(a.r2) & np.isfinite(b.r2)
-    else:
-        k = CLASSES.index(cls)
-        both = (a.classes == k) & (b.classes == k) & np.isfinite(a.r2) & np.isfinite(b.r2)
+    same = a.classes == b.classes if cls is None else (a.classes == CLASSES.index(cls)) & (b.classes == a.classes)
+    both = same & np.isfinite(a.r2) & np.isfinite(b.r2)
     n = int(both.sum())
     if n < 10:
         return None
@@ -198,9 +195,10 @@ def improvement(before: CheckResult, after: CheckResult) -> str | None:
     # magnitude against a pixel error² risen by a significant sliver.)
     total = paired_fall(before, after, None)
     pooled_rose = total is not None and -total[0] > ERROR_SIGMAS * total[1]
+    falls = {cls: paired_fall(before, after, cls) for cls in classes}
     for cls, b in classes.items():
         a = (after.error.get("classes") or {}).get(cls)
-        fall = paired_fall(before, after, cls)
+        fall = falls[cls]
         if not pooled_rose and fall is not None and _finite(b) and _finite(a) and fall[0] > ERROR_SIGMAS * fall[1]:
             return f"error.classes.{cls} {b:.4g} → {a:.4g} (paired z {fall[0] / max(fall[1], 1e-300):.1f})"
     n_means = (after.data or {}).get("held_out_means") or {}
@@ -217,8 +215,7 @@ def improvement(before: CheckResult, after: CheckResult) -> str | None:
             return f"{label} {b:.3g} → {a:.3g}"
     # nor does a failing gof's rise make up for any one class's error risen beyond its noise (on a dark series a
     # nonlinearity with β = 0.43 lifted gof.pixel from 2e-236 to 2e-234 while error.pixel went 1.62 → 2.81)
-    rose = any(fall is not None and -fall[0] > ERROR_SIGMAS * fall[1]
-               for fall in (paired_fall(before, after, cls) for cls in classes))
+    rose = any(fall is not None and -fall[0] > ERROR_SIGMAS * fall[1] for fall in falls.values())
     for key, b in before.gof.items():
         a = after.gof.get(key)
         if not rose and _finite(b) and _finite(a) and b < GOF_FAIL and a >= GOF_RISE * max(b, 1e-300):

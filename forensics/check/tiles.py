@@ -474,10 +474,11 @@ def _precision(cov: np.ndarray) -> np.ndarray:
     return np.linalg.pinv(corr, rcond=1e-10, hermitian=True) / np.outer(d, d)
 
 
-def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float | None, int, float | None]:
+def combine_params(tiles: Sequence[TileResult], untrusted: Sequence[UntrustedEstimate] | None = None
+                   ) -> tuple[list[TiledParam], float | None, int, float | None]:
     """The global parameters combined over ``tiles`` by their information (module docstring), each with its
     heterogeneity test, and the joint heterogeneity test (Q, df, p); the estimates of
-    :func:`untrusted_estimates` left out.
+    :func:`untrusted_estimates` left out (``untrusted``: those of ``tiles``, when already found).
 
     Examples
     --------
@@ -493,13 +494,13 @@ def combine_params(tiles: Sequence[TileResult]) -> tuple[list[TiledParam], float
     order: list[str] = []
     meta: dict[str, ParamEstimate] = {}
     parts = []
-    untrusted: dict[int, set[str]] = {}
-    for u in untrusted_estimates(tiles):
-        untrusted.setdefault(u.tile, set()).add(u.label)
+    left_out: dict[int, set[str]] = {}
+    for u in untrusted_estimates(tiles) if untrusted is None else untrusted:
+        left_out.setdefault(u.tile, set()).add(u.label)
     for i, t in enumerate(tiles):
         if t.excluded:
             continue
-        labels, values, cov = _tile_covariance(t.params, untrusted.get(i, set()))
+        labels, values, cov = _tile_covariance(t.params, left_out.get(i, set()))
         if not labels:
             continue
         parts.append((labels, values, cov, _precision(cov), tile_dispersion(t)))
@@ -694,7 +695,8 @@ def combine_candidates(tiles: Sequence[TileResult]) -> list[CombinedCandidate]:
 def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> TiledCheck:
     """The whole frame's :class:`TiledCheck` from its tiles' results."""
     tiles = list(tiles)
-    params, q, df, p = combine_params(tiles)
+    untrusted = untrusted_estimates(tiles)
+    params, q, df, p = combine_params(tiles, untrusted)
     warnings = []
     failed = [t for t in tiles if t.excluded]
     if failed:
@@ -709,7 +711,6 @@ def combine(shape: tuple[int, int], size: int, tiles: Sequence[TileResult]) -> T
     if empty:
         warnings.append(f"{len(empty)} tile(s) gave no held-out error (no usable pixel means there, e.g. a dead or "
                         "saturated part of the sensor): " + "; ".join(_where(t) for t in empty[:5]))
-    untrusted = untrusted_estimates(tiles)
     if untrusted:
         by_tile: dict[int, list[UntrustedEstimate]] = {}
         for u in untrusted:
